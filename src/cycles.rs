@@ -1,0 +1,220 @@
+//! Short cycles of a fundamental cycle basis: the convergence measure of the
+//! contraction (METHOD.md §2.6, paper §III-C) and the refinement that collapses
+//! small polygons (METHOD.md §3, paper §III-G, eqs. 10–11).
+//!
+//! The basis is that of a breadth-first spanning forest (roots: the lowest node of
+//! each component; neighbours in CSR order). Each non-tree edge `(u, v)` closes the
+//! cycle `u → … → lca → … → v → u`. Only cycles with fewer than `max_nodes` nodes
+//! are wanted, so the climb toward the common ancestor gives up after that many
+//! steps: the pass costs O(edges × max_nodes), and long cycles are never built.
+//! This hot path is written here rather than taken from petgraph/rustworkx, whose
+//! cycle bases materialise every cycle.
+
+use crate::grid::Csr;
+use rayon::prelude::*;
+use std::collections::VecDeque;
+
+/// A breadth-first spanning forest.
+struct Forest {
+    parent: Vec<u32>,
+    depth: Vec<u32>,
+}
+
+fn forest(g: &Csr) -> Forest {
+    let n = g.nodes();
+    let mut parent = vec![u32::MAX; n];
+    let mut depth = vec![0u32; n];
+    let mut queue = VecDeque::new();
+    for root in 0..n {
+        if parent[root] != u32::MAX {
+            continue;
+        }
+        parent[root] = root as u32;
+        queue.push_back(root);
+        while let Some(a) = queue.pop_front() {
+            for &b in g.neighbours(a) {
+                if parent[b as usize] == u32::MAX {
+                    parent[b as usize] = a as u32;
+                    depth[b as usize] = depth[a] + 1;
+                    queue.push_back(b as usize);
+                }
+            }
+        }
+    }
+    Forest { parent, depth }
+}
+
+/// A cycle of the fundamental basis: its nodes in order around it, and its
+/// vector area `0.5 |sum_(a,b) a × b|` (eq. 10), in physical units squared.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cycle {
+    pub nodes: Vec<u32>,
+    pub area: f64,
+}
+
+/// Vector area of a closed polygon, taken about its first vertex (the sum is
+/// origin-independent for a closed polygon; this keeps it well conditioned).
+pub fn vector_area(nodes: &[u32], positions: &[[f64; 3]]) -> f64 {
+    let o = positions[nodes[0] as usize];
+    let rel = |i: u32| {
+        let p = positions[i as usize];
+        [p[0] - o[0], p[1] - o[1], p[2] - o[2]]
+    };
+    let mut s = [0.0; 3];
+    for w in 0..nodes.len() {
+        let a = rel(nodes[w]);
+        let b = rel(nodes[(w + 1) % nodes.len()]);
+        s[0] += a[1] * b[2] - a[2] * b[1];
+        s[1] += a[2] * b[0] - a[0] * b[2];
+        s[2] += a[0] * b[1] - a[1] * b[0];
+    }
+    0.5 * (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt()
+}
+
+/// Every fundamental cycle with fewer than `max_nodes` nodes, in order of its
+/// closing edge `(u, v)`, `u < v`.
+pub fn short_cycles(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> Vec<Cycle> {
+    let f = forest(g);
+    let closing: Vec<(u32, u32)> = (0..g.nodes())
+        .into_par_iter()
+        .flat_map_iter(|u| {
+            let f = &f;
+            g.neighbours(u).iter().filter_map(move |&v| {
+                let tree = f.parent[v as usize] == u as u32 || f.parent[u] == v;
+                (v as usize > u && !tree).then_some((u as u32, v))
+            })
+        })
+        .collect();
+    closing
+        .par_iter()
+        .filter_map(|&(u, v)| {
+            let (mut a, mut b) = (u, v);
+            let (mut left, mut right) = (vec![a], vec![b]);
+            while a != b {
+                if left.len() + right.len() > max_nodes {
+                    return None;
+                }
+                if f.depth[a as usize] >= f.depth[b as usize] {
+                    a = f.parent[a as usize];
+                    left.push(a);
+                } else {
+                    b = f.parent[b as usize];
+                    right.push(b);
+                }
+            }
+            right.pop(); // the common ancestor is already the last of `left`
+            left.extend(right.iter().rev());
+            (left.len() < max_nodes).then(|| {
+                let area = vector_area(&left, positions);
+                Cycle { nodes: left, area }
+            })
+        })
+        .collect()
+}
+
+/// `A_t`: the summed area of the short fundamental cycles.
+pub fn short_cycle_area(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> f64 {
+    short_cycles(g, positions, max_nodes).iter().map(|c| c.area).sum()
+}
+
+/// One refinement move (eq. 11): every node of a kept cycle (area below
+/// `max_area`) steps halfway to the centroid of one kept cycle through it — the
+/// one with the fewest nodes, then the smallest area, then the first closing edge.
+/// Returns the new positions and which nodes moved, or `None` if no cycle is kept.
+pub fn refine_step(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    max_nodes: usize,
+    max_area: f64,
+) -> Option<(Vec<[f64; 3]>, Vec<bool>, usize)> {
+    let kept: Vec<Cycle> = short_cycles(g, positions, max_nodes).into_iter().filter(|c| c.area < max_area).collect();
+    if kept.is_empty() {
+        return None;
+    }
+    let mut choice: Vec<Option<usize>> = vec![None; g.nodes()];
+    let rank = |k: usize| (kept[k].nodes.len(), kept[k].area, k);
+    for (k, c) in kept.iter().enumerate() {
+        for &i in &c.nodes {
+            let slot = &mut choice[i as usize];
+            if slot.is_none_or(|old| rank(k).partial_cmp(&rank(old)) == Some(std::cmp::Ordering::Less)) {
+                *slot = Some(k);
+            }
+        }
+    }
+    let centroids: Vec<[f64; 3]> = kept
+        .iter()
+        .map(|c| {
+            let mut s = [0.0; 3];
+            for &i in &c.nodes {
+                for d in 0..3 {
+                    s[d] += positions[i as usize][d];
+                }
+            }
+            s.map(|x| x / c.nodes.len() as f64)
+        })
+        .collect();
+    let moved: Vec<bool> = choice.iter().map(Option::is_some).collect();
+    let new = positions
+        .iter()
+        .zip(&choice)
+        .map(|(p, ch)| match ch {
+            Some(k) => std::array::from_fn(|d| 0.5 * (p[d] + centroids[*k][d])),
+            None => *p,
+        })
+        .collect();
+    Some((new, moved, kept.len()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ring(n: u32, radius: f64) -> (Csr, Vec<[f64; 3]>) {
+        let mut e: Vec<_> = (0..n - 1).map(|i| (i, i + 1)).collect();
+        e.push((0, n - 1));
+        e.sort_unstable();
+        let p = (0..n)
+            .map(|i| {
+                let t = i as f64 / n as f64 * std::f64::consts::TAU;
+                [radius * t.cos(), radius * t.sin(), 0.0]
+            })
+            .collect();
+        (Csr::from_sorted_edges(n as usize, &e), p)
+    }
+
+    #[test]
+    fn square_area_and_length_cut() {
+        let (g, p) = ring(4, 1.0);
+        let c = short_cycles(&g, &p, 10);
+        assert_eq!(c.len(), 1);
+        assert_eq!(c[0].nodes.len(), 4);
+        assert!((c[0].area - 2.0).abs() < 1e-12); // square inscribed in the unit circle
+                                                  // A 12-gon is too long for max_nodes = 10, and counted with 13.
+        let (g, p) = ring(12, 5.0);
+        assert!(short_cycles(&g, &p, 10).is_empty());
+        let a = short_cycle_area(&g, &p, 13);
+        assert!((a - 0.5 * 12.0 * 25.0 * (std::f64::consts::TAU / 12.0).sin()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn area_is_translation_invariant() {
+        let (g, p) = ring(6, 2.0);
+        let q: Vec<_> = p.iter().map(|x| [x[0] + 1e6, x[1] - 3e5, x[2] + 7.0]).collect();
+        let (a, b) = (short_cycle_area(&g, &p, 10), short_cycle_area(&g, &q, 10));
+        assert!((a - b).abs() < 1e-6 * a);
+    }
+
+    #[test]
+    fn refinement_moves_small_cycles_only() {
+        // Triangle 0-1-2 plus a tail 2-3.
+        let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (1, 2), (2, 3)]);
+        let p = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 5.0, 0.0]];
+        let (q, moved, kept) = refine_step(&g, &p, 10, 50.0).unwrap();
+        assert_eq!(kept, 1);
+        assert_eq!(moved, vec![true, true, true, false]);
+        let third = 1.0 / 3.0;
+        assert!((q[1][0] - 0.5 * (1.0 + third)).abs() < 1e-12);
+        assert_eq!(q[3], p[3]);
+        assert!(refine_step(&g, &p, 10, 0.1).is_none());
+    }
+}

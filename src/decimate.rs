@@ -1,0 +1,228 @@
+//! Geometric graph decimation by cell hashing (METHOD.md §2.5, paper §III-E and
+//! §III-F): nodes that fall in the same cubic cell of side `c` (cells centred on
+//! voxel centres) become one node at their mean position with the largest radius
+//! of the group; two new nodes are joined if any of their members were.
+//!
+//! The cell key also carries the mask component, so nodes of different mask
+//! components never merge (each component stays one graph component), and nodes
+//! asked to keep their identity (skeleton-like nodes) get a key of their own.
+//! New nodes are numbered in key order: component, then cell in C order.
+
+use crate::error::{Error, Result};
+use crate::grid::{for_row_blocks, Csr};
+use rayon::prelude::*;
+
+/// Half-range of a packed cell coordinate: cells must lie in `(-2^20, 2^20)`.
+pub const CELL_LIMIT: i64 = 1 << 20;
+
+/// A graph with per-node geometry, as carried between iterations.
+#[derive(Debug, Clone, Default)]
+pub struct NodeGraph {
+    pub graph: Csr,
+    pub positions: Vec<[f64; 3]>,
+    pub radii: Vec<f64>,
+    pub component: Vec<u32>,
+}
+
+/// The cell of a position: `round(p / c)` per axis.
+pub fn cell_of(p: &[f64; 3], c: f64) -> Result<[i64; 3]> {
+    let mut out = [0i64; 3];
+    for d in 0..3 {
+        let x = (p[d] / c).round();
+        if !x.is_finite() || x.abs() >= CELL_LIMIT as f64 {
+            return Err(Error::InvalidMask(format!(
+                "node position {p:?} is outside the supported extent of ±{CELL_LIMIT} cells (or not finite)"
+            )));
+        }
+        out[d] = x as i64;
+    }
+    Ok(out)
+}
+
+/// Sort key: component (32 bits) | cell (3 × 21 bits) | identity tag (32 bits).
+fn key(component: u32, cell: [i64; 3], tag: u32) -> u128 {
+    let packed = cell.iter().fold(0u128, |acc, &x| (acc << 21) | (x + CELL_LIMIT) as u128);
+    ((component as u128) << 96) | (packed << 32) | tag as u128
+}
+
+/// Edges shorter than this fraction of the cell size join their nodes' clusters.
+pub const SHORT_EDGE: f64 = 0.5;
+
+/// Merge nodes per cell. `keep[i]` makes node `i` a cluster of its own.
+///
+/// Besides sharing a cell, two cells whose nodes (not kept) are joined by an edge
+/// shorter than [`SHORT_EDGE`]` * c` may merge: each cell with at most one other,
+/// shortest edges first. Fixed cells alone split a centreline that lies on a cell
+/// boundary (a tube of even voxel width) into two rails a hair apart that never
+/// merge: a "ladder" whose rungs the refinement then collapses along the vessel,
+/// eating it from its end. Pairing (rather than chaining) keeps every cluster within
+/// two cells, so the decimation stays as fine as the cell grid.
+pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
+    let n = g.positions.len();
+    let keys: Vec<(u128, u32)> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let tag = if keep[i] { i as u32 + 1 } else { 0 };
+            Ok((key(g.component[i], cell_of(&g.positions[i], c)?, tag), i as u32))
+        })
+        .collect::<Result<_>>()?;
+    let mut order = keys;
+    order.par_sort_unstable();
+    // Cells, numbered in key order.
+    let mut cell = vec![0u32; n];
+    let mut cells = 0u32;
+    for s in 0..n {
+        if s > 0 && order[s].0 != order[s - 1].0 {
+            cells += 1;
+        }
+        cell[order[s].1 as usize] = cells;
+    }
+    let cells = if n > 0 { cells as usize + 1 } else { 0 };
+    // Cells paired through their shortest short edge: a greedy matching, shortest
+    // first, so a cluster spans at most two cells.
+    let limit = (SHORT_EDGE * c).powi(2);
+    let mut joins: Vec<(u64, u32, u32)> = (0..n)
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            let (cell, keep) = (&cell, &keep);
+            g.graph.neighbours(i).iter().filter_map(move |&j| {
+                let j = j as usize;
+                let (p, q) = (g.positions[i], g.positions[j]);
+                let d2 = (p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2);
+                let (a, b) = (cell[i].min(cell[j]), cell[i].max(cell[j]));
+                (j > i && !keep[i] && !keep[j] && a != b && d2 < limit).then_some((d2.to_bits(), a, b))
+            })
+        })
+        .collect();
+    joins.par_sort_unstable();
+    let mut partner: Vec<u32> = (0..cells as u32).collect();
+    for &(_, a, b) in &joins {
+        if partner[a as usize] == a && partner[b as usize] == b {
+            partner[a as usize] = b;
+            partner[b as usize] = a;
+        }
+    }
+    // Clusters numbered by their first cell in key order.
+    let mut cluster_of_cell = vec![u32::MAX; cells];
+    let mut clusters = 0u32;
+    for k in 0..cells {
+        if cluster_of_cell[k] == u32::MAX {
+            cluster_of_cell[k] = clusters;
+            cluster_of_cell[partner[k] as usize] = clusters;
+            clusters += 1;
+        }
+    }
+    let clusters = clusters as usize;
+    let map: Vec<u32> = cell.iter().map(|&k| cluster_of_cell[k as usize]).collect();
+    // Members of every cluster in increasing node order (counting sort).
+    let mut start = vec![0usize; clusters + 1];
+    for &m in &map {
+        start[m as usize + 1] += 1;
+    }
+    for k in 0..clusters {
+        start[k + 1] += start[k];
+    }
+    let mut fill = start.clone();
+    let mut members = vec![0u32; n];
+    for (i, &m) in map.iter().enumerate() {
+        members[fill[m as usize]] = i as u32;
+        fill[m as usize] += 1;
+    }
+    let merged: Vec<([f64; 3], f64, u32)> = (0..clusters)
+        .into_par_iter()
+        .map(|k| {
+            let m = &members[start[k]..start[k + 1]];
+            let mut sum = [0.0; 3];
+            let mut r = f64::NEG_INFINITY;
+            for &i in m {
+                let p = g.positions[i as usize];
+                for d in 0..3 {
+                    sum[d] += p[d];
+                }
+                r = r.max(g.radii[i as usize]);
+            }
+            let len = m.len() as f64;
+            ([sum[0] / len, sum[1] / len, sum[2] / len], r, g.component[m[0] as usize])
+        })
+        .collect();
+    let mut edges: Vec<(u32, u32)> = vec![(0, 0); g.graph.targets.len()];
+    for_row_blocks(&g.graph.offsets, &mut edges, |rows, out| {
+        let mut e = 0;
+        for i in rows {
+            for &j in g.graph.neighbours(i) {
+                let (a, b) = (map[i], map[j as usize]);
+                out[e] = (a.min(b), a.max(b));
+                e += 1;
+            }
+        }
+    });
+    edges.retain(|&(a, b)| a != b);
+    edges.par_sort_unstable();
+    edges.dedup();
+    Ok(NodeGraph {
+        graph: Csr::from_sorted_edges(clusters, &edges),
+        positions: merged.iter().map(|m| m.0).collect(),
+        radii: merged.iter().map(|m| m.1).collect(),
+        component: merged.iter().map(|m| m.2).collect(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn merges_per_cell_with_mean_position_and_max_radius() {
+        // Path 0-1-2-3; nodes 1 and 2 share a cell.
+        let g = NodeGraph {
+            graph: Csr::from_sorted_edges(4, &[(0, 1), (1, 2), (2, 3)]),
+            positions: vec![[0.0; 3], [1.1, 0.0, 0.0], [0.9, 0.2, 0.0], [2.0, 0.0, 0.0]],
+            radii: vec![1.0, 2.0, 3.0, 1.0],
+            component: vec![0; 4],
+        };
+        let d = decimate(&g, &[false; 4], 1.0).unwrap();
+        assert_eq!(d.positions.len(), 3);
+        assert_eq!(d.positions[1], [1.0, 0.1, 0.0]);
+        assert_eq!(d.radii, vec![1.0, 3.0, 1.0]);
+        assert_eq!(d.graph.edge_list(), vec![(0, 1), (1, 2)]);
+        // Kept nodes stay apart even in one cell.
+        let k = decimate(&g, &[false, true, false, false], 1.0).unwrap();
+        assert_eq!(k.positions.len(), 4);
+        assert_eq!(k.graph.edges(), 3);
+    }
+
+    #[test]
+    fn nodes_straddling_a_cell_face_merge_through_a_short_edge() {
+        // A ladder: rails at k = 1.49 and 1.51 (cells 1 and 2), rungs between them.
+        let pos = vec![[0.0, 0.0, 1.49], [0.0, 0.0, 1.51], [1.0, 0.0, 1.49], [1.0, 0.0, 1.51]];
+        let g = NodeGraph {
+            graph: Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (1, 3), (2, 3)]),
+            positions: pos,
+            radii: vec![1.0; 4],
+            component: vec![0; 4],
+        };
+        let d = decimate(&g, &[false; 4], 1.0).unwrap();
+        assert_eq!(d.positions, vec![[0.0, 0.0, 1.5], [1.0, 0.0, 1.5]]);
+        assert_eq!(d.graph.edge_list(), vec![(0, 1)]);
+        // Kept nodes do not merge.
+        assert_eq!(decimate(&g, &[true, false, false, false], 1.0).unwrap().positions.len(), 3);
+    }
+
+    #[test]
+    fn components_never_merge() {
+        let g = NodeGraph {
+            graph: Csr::from_sorted_edges(2, &[]),
+            positions: vec![[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]],
+            radii: vec![1.0, 1.0],
+            component: vec![0, 1],
+        };
+        assert_eq!(decimate(&g, &[false; 2], 1.0).unwrap().positions.len(), 2);
+    }
+
+    #[test]
+    fn far_positions_are_refused() {
+        assert!(cell_of(&[1e9, 0.0, 0.0], 1.0).is_err());
+        assert!(cell_of(&[f64::NAN, 0.0, 0.0], 1.0).is_err());
+        assert_eq!(cell_of(&[-0.4, 0.5, 1.49], 1.0).unwrap(), [0, 1, 1]);
+    }
+}

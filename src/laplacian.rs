@@ -1,0 +1,143 @@
+//! l2-norm and medial Laplacians and adaptive anchoring (METHOD.md §2.1–2.3,
+//! paper §III-B eqs. 2–4 and §III-D eq. 9).
+//!
+//! A Laplacian `L = W - I` is stored as its off-diagonal weights, one per CSR
+//! entry (row-normalised), and its diagonal, which is `-1` for a row with
+//! weights and `0` for a row whose weight sum is 0: such a node gets no pull from
+//! that term, rather than a pull toward the origin.
+
+use crate::grid::{for_row_blocks, Csr};
+use crate::params::{MedialWeight, Params};
+use rayon::prelude::*;
+
+/// One Laplacian: `(L x)_i = diagonal_i x_i + sum_e weight_e x_{target_e}`.
+#[derive(Debug, Clone, Default)]
+pub struct Laplacian {
+    /// `W_ij` per CSR entry `i → j`.
+    pub weight: Vec<f32>,
+    /// `W_ji` per CSR entry `i → j` (the transpose, laid out like `weight`).
+    pub weight_t: Vec<f32>,
+    /// `-1`, or `0` for a row with no weight.
+    pub diagonal: Vec<f32>,
+}
+
+impl Laplacian {
+    /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`.
+    fn from_affinity(g: &Csr, twins: &[usize], affinity: impl Fn(usize, usize) -> f64 + Sync) -> Laplacian {
+        let mut weight = vec![0f32; g.targets.len()];
+        for_row_blocks(&g.offsets, &mut weight, |rows, out| {
+            let mut e = 0;
+            for i in rows {
+                let nb = g.neighbours(i);
+                let total: f64 = nb.iter().map(|&j| affinity(i, j as usize)).sum();
+                for &j in nb {
+                    out[e] = if total > 0.0 { (affinity(i, j as usize) / total) as f32 } else { 0.0 };
+                    e += 1;
+                }
+            }
+        });
+        let weight_t = twins.par_iter().map(|&t| weight[t]).collect();
+        let diagonal = (0..g.nodes())
+            .into_par_iter()
+            .map(|i| if weight[g.offsets[i]..g.offsets[i + 1]].iter().any(|&w| w > 0.0) { -1.0 } else { 0.0 })
+            .collect();
+        Laplacian { weight, weight_t, diagonal }
+    }
+}
+
+fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+}
+
+/// l2-norm Laplacian: `W_ij = |p_i - p_j| / sum_k |p_i - p_k|` (eq. 2).
+pub fn l2_norm(g: &Csr, twins: &[usize], positions: &[[f64; 3]]) -> Laplacian {
+    Laplacian::from_affinity(g, twins, |i, j| distance(&positions[i], &positions[j]))
+}
+
+/// Medial Laplacian: `W_ij = r_j / sum_k r_k` (the authors' code, default) or
+/// `|r_i - r_j| / sum_k |r_i - r_k|` (eq. 3).
+pub fn medial(g: &Csr, twins: &[usize], radii: &[f64], kind: MedialWeight) -> Laplacian {
+    match kind {
+        MedialWeight::Radius => Laplacian::from_affinity(g, twins, |_, j| radii[j]),
+        MedialWeight::Difference => Laplacian::from_affinity(g, twins, |i, j| (radii[i] - radii[j]).abs()),
+    }
+}
+
+/// Skeleton-like nodes (METHOD.md §2.3): degree > 1 and every neighbour direction
+/// collinear with the direction to the first neighbour within `skeletal_angle`
+/// degrees (parallel or antiparallel). A coincident neighbour disqualifies.
+pub fn skeletal(g: &Csr, positions: &[[f64; 3]], params: &Params) -> Vec<bool> {
+    let min_cos = params.skeletal_angle.to_radians().cos();
+    (0..g.nodes())
+        .into_par_iter()
+        .map(|i| {
+            let nb = g.neighbours(i);
+            if nb.len() < 2 {
+                return false;
+            }
+            let p = positions[i];
+            let dir = |j: u32| {
+                let q = positions[j as usize];
+                let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                (n > 0.0).then(|| [d[0] / n, d[1] / n, d[2] / n])
+            };
+            let Some(first) = dir(nb[0]) else { return false };
+            nb[1..].iter().all(|&j| {
+                dir(j).is_some_and(|u| (u[0] * first[0] + u[1] * first[1] + u[2] * first[2]).abs() >= min_cos)
+            })
+        })
+        .collect()
+}
+
+/// Anchoring weights `Wg_i`: `gamma`, or `eps_gamma * gamma` for skeleton-like nodes.
+pub fn anchors(skeletal: &[bool], params: &Params) -> Vec<f64> {
+    skeletal.par_iter().map(|&s| if s { params.eps_gamma * params.gamma } else { params.gamma }).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn path(n: u32) -> Csr {
+        let e: Vec<_> = (0..n - 1).map(|i| (i, i + 1)).collect();
+        Csr::from_sorted_edges(n as usize, &e)
+    }
+
+    #[test]
+    fn l2_weights_are_row_normalised_and_transposed() {
+        let g = path(3);
+        let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [4.0, 0.0, 0.0]];
+        let l = l2_norm(&g, &g.twins(), &p);
+        // Row 1: neighbours at distance 1 and 3.
+        assert_eq!(&l.weight[1..3], &[0.25, 0.75]);
+        assert_eq!(l.weight[0], 1.0);
+        // Transposed entry 1→0 holds W_01 = 1.
+        assert_eq!(l.weight_t[1], 1.0);
+        assert_eq!(l.diagonal, vec![-1.0; 3]);
+    }
+
+    #[test]
+    fn zero_rows_get_no_pull() {
+        let g = path(3);
+        let r = [2.0, 2.0, 2.0];
+        let l = medial(&g, &g.twins(), &r, MedialWeight::Difference);
+        assert!(l.weight.iter().all(|&w| w == 0.0));
+        assert_eq!(l.diagonal, vec![0.0; 3]);
+        let l = medial(&g, &g.twins(), &[1.0, 3.0, 1.0], MedialWeight::Radius);
+        assert_eq!(l.weight[0], 1.0);
+        assert_eq!(&l.weight[1..3], &[0.5, 0.5]);
+    }
+
+    #[test]
+    fn collinear_nodes_are_skeletal() {
+        let g = path(3);
+        let p = Params::default();
+        let straight = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.1, 0.0]];
+        assert_eq!(skeletal(&g, &straight, &p), vec![false, true, false]);
+        let bent = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 1.0, 0.0]];
+        assert_eq!(skeletal(&g, &bent, &p), vec![false, false, false]);
+        assert_eq!(anchors(&[true, false], &p), vec![0.5, 0.05]);
+    }
+}

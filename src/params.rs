@@ -1,0 +1,356 @@
+//! Every parameter of the method (METHOD.md), its default and its validation.
+//!
+//! One table serves all front ends: [`Params::NAMES`] lists the names,
+//! [`Params::set`] assigns a loosely typed [`Value`] with range checks that name
+//! the parameter, and [`Params::values`] lists current values (for `repr`,
+//! `--help`, and run metadata).
+
+use crate::error::{Error, Result};
+
+/// Edges of the initial grid graph (METHOD.md §1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Connectivity {
+    Six = 6,
+    Eighteen = 18,
+    TwentySix = 26,
+}
+
+/// Medial affinity weighting (METHOD.md §2.1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MedialWeight {
+    /// `r_j / sum_k r_k`: what the authors' code ran (default).
+    Radius,
+    /// `|r_i - r_j| / sum_k |r_i - r_k|`: the paper's eq. 3.
+    Difference,
+}
+
+/// Reference area of the convergence test (METHOD.md §2.6).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AreaReference {
+    /// Number of foreground voxels, in `c^2` units (the authors' code; default).
+    Volume,
+    /// Short-cycle area of the initial grid graph (the paper's `A_0`).
+    InitialArea,
+}
+
+/// A loosely typed parameter value as it arrives from Python or the command line.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Value {
+    Bool(bool),
+    Int(i64),
+    Float(f64),
+    Str(String),
+}
+
+impl std::fmt::Display for Value {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Value::Bool(b) => write!(f, "{}", if *b { "True" } else { "False" }),
+            Value::Int(i) => write!(f, "{i}"),
+            Value::Float(x) => write!(f, "{x:?}"),
+            Value::Str(s) => write!(f, "'{s}'"),
+        }
+    }
+}
+
+impl Value {
+    /// Parse a command-line word: `true`/`false`, an integer, a float, else a string.
+    pub fn parse(word: &str) -> Value {
+        match word.to_ascii_lowercase().as_str() {
+            "true" => return Value::Bool(true),
+            "false" => return Value::Bool(false),
+            _ => {}
+        }
+        if let Ok(i) = word.parse::<i64>() {
+            return Value::Int(i);
+        }
+        if let Ok(x) = word.parse::<f64>() {
+            return Value::Float(x);
+        }
+        Value::Str(word.to_string())
+    }
+}
+
+/// All parameters of the method, with METHOD.md's defaults.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    /// Grid-graph connectivity: 6 (default), 18 or 26.
+    pub connectivity: Connectivity,
+    /// Join nodes of degree <= 2 to all foreground voxels within sqrt(2) voxels.
+    pub reconnect_thin: bool,
+    /// Subtracted from every output radius, in units of the base cell `c = min(spacing)`.
+    /// The EDT measures to the nearest background voxel *centre*, half a voxel beyond
+    /// the boundary a voxelised surface represents; 0.5 removes that offset.
+    pub radius_correction: f64,
+    /// Medial affinity weighting.
+    pub medial_weight: MedialWeight,
+    /// Angle (degrees) within which all neighbour directions must be collinear for a
+    /// node to count as skeleton-like (adaptive anchoring).
+    pub skeletal_angle: f64,
+    /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
+    pub eps_gamma: f64,
+    /// Weight of the l2-norm Laplacian.
+    pub alpha: f64,
+    /// Weight of the medial Laplacian.
+    pub beta: f64,
+    /// Anchoring weight (speed of the flow: lower = faster, coarser).
+    pub gamma: f64,
+    /// Relative residual at which conjugate gradients stop.
+    pub cg_tol: f64,
+    /// Cap on conjugate-gradient iterations per solve.
+    pub cg_max_iterations: usize,
+    /// Cycles with fewer than this many nodes count in the convergence measure.
+    pub max_cycle_nodes: usize,
+    /// Stop when the short-cycle area falls to this fraction of the reference.
+    pub stop_ratio: f64,
+    /// Reference area of the convergence test.
+    pub area_reference: AreaReference,
+    /// Cap on contraction iterations.
+    pub max_iterations: usize,
+    /// Refinement collapses cycles whose area is below this many `c^2`.
+    pub refine_area: f64,
+    /// Cap on refinement iterations.
+    pub max_refine_iterations: usize,
+    /// Worker threads; 0 = one per core. Output does not depend on it.
+    pub threads: usize,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            connectivity: Connectivity::Six,
+            reconnect_thin: true,
+            radius_correction: 0.5,
+            medial_weight: MedialWeight::Radius,
+            skeletal_angle: 10.0,
+            eps_gamma: 10.0,
+            alpha: 0.5,
+            beta: 0.5,
+            gamma: 0.05,
+            cg_tol: 1e-6,
+            cg_max_iterations: 2000,
+            max_cycle_nodes: 10,
+            stop_ratio: 1e-3,
+            area_reference: AreaReference::Volume,
+            max_iterations: 100,
+            refine_area: 50.0,
+            max_refine_iterations: 100,
+            threads: 0,
+        }
+    }
+}
+
+fn bad(name: &str, reason: impl Into<String>) -> Error {
+    Error::InvalidParameter { name: name.to_string(), reason: reason.into() }
+}
+
+fn as_f64(name: &str, v: &Value) -> Result<f64> {
+    match v {
+        Value::Float(x) => Ok(*x),
+        Value::Int(i) => Ok(*i as f64),
+        _ => Err(bad(name, format!("expected a number, got {v}"))),
+    }
+}
+
+fn as_usize(name: &str, v: &Value) -> Result<usize> {
+    match v {
+        Value::Int(i) if *i >= 0 => Ok(*i as usize),
+        Value::Int(i) => Err(bad(name, format!("expected an integer >= 0, got {i}"))),
+        _ => Err(bad(name, format!("expected an integer, got {v}"))),
+    }
+}
+
+fn as_bool(name: &str, v: &Value) -> Result<bool> {
+    match v {
+        Value::Bool(b) => Ok(*b),
+        _ => Err(bad(name, format!("expected True or False, got {v}"))),
+    }
+}
+
+fn as_str<'a>(name: &str, v: &'a Value) -> Result<&'a str> {
+    match v {
+        Value::Str(s) => Ok(s),
+        _ => Err(bad(name, format!("expected a string, got {v}"))),
+    }
+}
+
+fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> {
+    let ok = x.is_finite() && (if lo_open { x > lo } else { x >= lo }) && x <= hi;
+    if ok {
+        Ok(x)
+    } else {
+        let l = if lo_open { "(" } else { "[" };
+        Err(bad(name, format!("must be finite and in {l}{lo}, {hi}], got {x}")))
+    }
+}
+
+impl Params {
+    /// Every parameter name, in documentation order.
+    pub const NAMES: [&'static str; 18] = [
+        "connectivity",
+        "reconnect_thin",
+        "radius_correction",
+        "medial_weight",
+        "skeletal_angle",
+        "eps_gamma",
+        "alpha",
+        "beta",
+        "gamma",
+        "cg_tol",
+        "cg_max_iterations",
+        "max_cycle_nodes",
+        "stop_ratio",
+        "area_reference",
+        "max_iterations",
+        "refine_area",
+        "max_refine_iterations",
+        "threads",
+    ];
+
+    /// Assign one parameter by name, checking its type and range.
+    pub fn set(&mut self, name: &str, v: &Value) -> Result<()> {
+        match name {
+            "connectivity" => {
+                self.connectivity = match as_usize(name, v)? {
+                    6 => Connectivity::Six,
+                    18 => Connectivity::Eighteen,
+                    26 => Connectivity::TwentySix,
+                    k => return Err(bad(name, format!("must be 6, 18 or 26, got {k}"))),
+                }
+            }
+            "reconnect_thin" => self.reconnect_thin = as_bool(name, v)?,
+            "radius_correction" => self.radius_correction = in_range(name, as_f64(name, v)?, 0.0, 1.0, false)?,
+            "medial_weight" => {
+                self.medial_weight = match as_str(name, v)? {
+                    "radius" => MedialWeight::Radius,
+                    "difference" => MedialWeight::Difference,
+                    s => return Err(bad(name, format!("must be 'radius' or 'difference', got '{s}'"))),
+                }
+            }
+            "skeletal_angle" => self.skeletal_angle = in_range(name, as_f64(name, v)?, 0.0, 90.0, false)?,
+            "eps_gamma" => self.eps_gamma = in_range(name, as_f64(name, v)?, 1.0, 1e6, false)?,
+            "alpha" => self.alpha = in_range(name, as_f64(name, v)?, 0.0, 1e3, false)?,
+            "beta" => self.beta = in_range(name, as_f64(name, v)?, 0.0, 1e3, false)?,
+            "gamma" => self.gamma = in_range(name, as_f64(name, v)?, 0.0, 1e3, true)?,
+            "cg_tol" => self.cg_tol = in_range(name, as_f64(name, v)?, 0.0, 0.5, true)?,
+            "cg_max_iterations" => {
+                let k = as_usize(name, v)?;
+                if k == 0 {
+                    return Err(bad(name, "must be >= 1"));
+                }
+                self.cg_max_iterations = k;
+            }
+            "max_cycle_nodes" => {
+                let k = as_usize(name, v)?;
+                if !(4..=64).contains(&k) {
+                    return Err(bad(name, format!("must be in [4, 64], got {k}")));
+                }
+                self.max_cycle_nodes = k;
+            }
+            "stop_ratio" => self.stop_ratio = in_range(name, as_f64(name, v)?, 0.0, 1.0, true)?,
+            "area_reference" => {
+                self.area_reference = match as_str(name, v)? {
+                    "volume" => AreaReference::Volume,
+                    "initial_area" => AreaReference::InitialArea,
+                    s => return Err(bad(name, format!("must be 'volume' or 'initial_area', got '{s}'"))),
+                }
+            }
+            "max_iterations" => self.max_iterations = as_usize(name, v)?,
+            "refine_area" => self.refine_area = in_range(name, as_f64(name, v)?, 0.0, 1e9, false)?,
+            "max_refine_iterations" => self.max_refine_iterations = as_usize(name, v)?,
+            "threads" => {
+                let t = as_usize(name, v)?;
+                if t > 4096 {
+                    return Err(bad(name, format!("must be in [0, 4096], got {t}")));
+                }
+                self.threads = t;
+            }
+            _ => return Err(Error::UnknownParameter(name.to_string())),
+        }
+        if self.alpha == 0.0 && self.beta == 0.0 {
+            return Err(bad(name, "alpha and beta cannot both be 0 (no flow)"));
+        }
+        Ok(())
+    }
+
+    /// Build from `(name, value)` pairs over the defaults.
+    pub fn from_pairs<'a>(pairs: impl IntoIterator<Item = (&'a str, Value)>) -> Result<Params> {
+        let mut p = Params::default();
+        for (k, v) in pairs {
+            p.set(k, &v)?;
+        }
+        Ok(p)
+    }
+
+    /// Current values, in [`Params::NAMES`] order.
+    pub fn values(&self) -> Vec<(&'static str, Value)> {
+        let mw = match self.medial_weight {
+            MedialWeight::Radius => "radius",
+            MedialWeight::Difference => "difference",
+        };
+        let ar = match self.area_reference {
+            AreaReference::Volume => "volume",
+            AreaReference::InitialArea => "initial_area",
+        };
+        vec![
+            ("connectivity", Value::Int(self.connectivity as i64)),
+            ("reconnect_thin", Value::Bool(self.reconnect_thin)),
+            ("radius_correction", Value::Float(self.radius_correction)),
+            ("medial_weight", Value::Str(mw.into())),
+            ("skeletal_angle", Value::Float(self.skeletal_angle)),
+            ("eps_gamma", Value::Float(self.eps_gamma)),
+            ("alpha", Value::Float(self.alpha)),
+            ("beta", Value::Float(self.beta)),
+            ("gamma", Value::Float(self.gamma)),
+            ("cg_tol", Value::Float(self.cg_tol)),
+            ("cg_max_iterations", Value::Int(self.cg_max_iterations as i64)),
+            ("max_cycle_nodes", Value::Int(self.max_cycle_nodes as i64)),
+            ("stop_ratio", Value::Float(self.stop_ratio)),
+            ("area_reference", Value::Str(ar.into())),
+            ("max_iterations", Value::Int(self.max_iterations as i64)),
+            ("refine_area", Value::Float(self.refine_area)),
+            ("max_refine_iterations", Value::Int(self.max_refine_iterations as i64)),
+            ("threads", Value::Int(self.threads as i64)),
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_and_values_agree() {
+        let names: Vec<_> = Params::default().values().into_iter().map(|(k, _)| k).collect();
+        assert_eq!(names, Params::NAMES.to_vec());
+    }
+
+    #[test]
+    fn round_trip_every_value() {
+        let p = Params::default();
+        let q = Params::from_pairs(p.values()).unwrap();
+        assert_eq!(p, q);
+    }
+
+    #[test]
+    fn errors_name_the_parameter() {
+        let e = Params::from_pairs([("gamma", Value::Float(-1.0))]).unwrap_err();
+        assert!(e.to_string().contains("`gamma`"), "{e}");
+        let e = Params::from_pairs([("connectivity", Value::Int(7))]).unwrap_err();
+        assert!(e.to_string().contains("`connectivity`"), "{e}");
+        let e = Params::from_pairs([("nope", Value::Int(7))]).unwrap_err();
+        assert!(matches!(e, Error::UnknownParameter(_)));
+        let e = Params::from_pairs([("alpha", Value::Float(f64::NAN))]).unwrap_err();
+        assert!(e.to_string().contains("`alpha`"), "{e}");
+        let e = Params::from_pairs([("medial_weight", Value::Int(1))]).unwrap_err();
+        assert!(e.to_string().contains("`medial_weight`"), "{e}");
+    }
+
+    #[test]
+    fn parse_words() {
+        assert_eq!(Value::parse("true"), Value::Bool(true));
+        assert_eq!(Value::parse("12"), Value::Int(12));
+        assert_eq!(Value::parse("0.5"), Value::Float(0.5));
+        assert_eq!(Value::parse("radius"), Value::Str("radius".into()));
+    }
+}

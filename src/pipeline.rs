@@ -1,0 +1,225 @@
+//! The Skeletonizer: EDT → grid graph → contraction (Algorithm 1) → refinement
+//! (§III-G) → output, with per-stage timings and a progress observer.
+
+use crate::cycles::{refine_step, short_cycle_area};
+use crate::decimate::{decimate, NodeGraph, CELL_LIMIT};
+use crate::error::{Error, Result};
+use crate::graph::{RunInfo, Skeleton, StageTime};
+use crate::grid;
+use crate::laplacian;
+use crate::params::{AreaReference, Params};
+use crate::solver::{self, NormalOperator};
+use crate::volume::{check_spacing, edt_squared, Voxel};
+use ndarray::ArrayView3;
+use std::time::Instant;
+
+/// A progress report, sent after every stage and every iteration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Progress {
+    /// `"edt"`, `"grid"`, `"contract"`, `"refine"` or `"output"`.
+    pub stage: &'static str,
+    /// Iteration within the stage (0 for single-step stages).
+    pub iteration: usize,
+    /// Nodes in the graph now.
+    pub nodes: usize,
+    /// Stage-specific measure: for `"contract"`, `A_t / (stop_ratio * A_ref)`
+    /// (the run stops when it reaches 1); for `"refine"`, the cycles collapsed.
+    pub measure: f64,
+}
+
+/// The method with a fixed set of parameters.
+#[derive(Debug, Clone)]
+pub struct Skeletonizer {
+    params: Params,
+}
+
+/// Wall time per stage, accumulated in first-use order.
+#[derive(Default)]
+struct Clock(Vec<StageTime>);
+
+impl Clock {
+    fn time<R>(&mut self, stage: &'static str, f: impl FnOnce() -> R) -> R {
+        let t = Instant::now();
+        let r = f();
+        let dt = t.elapsed().as_secs_f64();
+        match self.0.iter_mut().find(|s| s.stage == stage) {
+            Some(s) => s.seconds += dt,
+            None => self.0.push(StageTime { stage, seconds: dt }),
+        }
+        r
+    }
+}
+
+fn report(
+    observer: &mut dyn FnMut(&Progress) -> bool,
+    stage: &'static str,
+    iteration: usize,
+    nodes: usize,
+    measure: f64,
+) -> Result<()> {
+    if observer(&Progress { stage, iteration, nodes, measure }) {
+        Ok(())
+    } else {
+        Err(Error::Interrupted)
+    }
+}
+
+impl Skeletonizer {
+    /// Check the parameters and keep them.
+    pub fn new(params: Params) -> Result<Self> {
+        // Re-applying every value through the checked setter validates a `Params`
+        // built field by field in Rust just as one built from names.
+        Params::from_pairs(params.values())?;
+        Ok(Skeletonizer { params })
+    }
+
+    /// The parameters in force.
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    /// Skeletonize `mask` (non-zero = vessel) with voxel `spacing` (physical units per
+    /// voxel along axes 0, 1, 2). `observer` gets every [`Progress`] report and stops
+    /// the run with [`Error::Interrupted`] by returning `false`.
+    ///
+    /// An empty mask gives an empty graph; a mask that is foreground everywhere is
+    /// refused ([`Error::AllForeground`]).
+    pub fn run<T: Voxel>(
+        &self,
+        mask: ArrayView3<'_, T>,
+        spacing: [f64; 3],
+        observer: &mut dyn FnMut(&Progress) -> bool,
+    ) -> Result<Skeleton> {
+        self.run_block(mask, [0; 3], spacing, observer)
+    }
+
+    /// [`Skeletonizer::run`] on a block of a larger volume whose voxel `(0, 0, 0)` is
+    /// voxel `offset` of the whole: positions and cells are global, so blocks agree.
+    pub fn run_block<T: Voxel>(
+        &self,
+        mask: ArrayView3<'_, T>,
+        offset: [i64; 3],
+        spacing: [f64; 3],
+        observer: &mut dyn FnMut(&Progress) -> bool,
+    ) -> Result<Skeleton> {
+        check_spacing(spacing)?;
+        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let (n0, n1, n2) = mask.dim();
+        for (d, n) in [n0, n1, n2].into_iter().enumerate() {
+            let far = (offset[d].unsigned_abs() as f64 + n as f64) * spacing[d] / c;
+            if far >= (CELL_LIMIT - 2) as f64 {
+                return Err(Error::InvalidMask(format!(
+                    "axis {d} spans {far:.0} base cells (offset {}, size {n}, spacing {}); at most {} are supported",
+                    offset[d],
+                    spacing[d],
+                    CELL_LIMIT - 2
+                )));
+            }
+        }
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(self.params.threads)
+            .build()
+            .map_err(|e| Error::ThreadPool { threads: self.params.threads, reason: e.to_string() })?;
+        let p = &self.params;
+        let mut clock = Clock::default();
+        let mut info = RunInfo::default();
+
+        let edt = clock.time("edt", || pool.install(|| edt_squared(mask, spacing)));
+        report(observer, "edt", 0, 0, 0.0)?;
+        let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, offset, p)));
+        drop(edt);
+        let n = grid.positions.len();
+        info.foreground_voxels = n;
+        info.mask_components = grid.components;
+        report(observer, "grid", 0, n, 0.0)?;
+        if n > 0 && n == n0 * n1 * n2 {
+            return Err(Error::AllForeground(n));
+        }
+        let mut g =
+            NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
+
+        // Contraction (Algorithm 1).
+        let area = |g: &NodeGraph| pool.install(|| short_cycle_area(&g.graph, &g.positions, p.max_cycle_nodes));
+        let a0 = clock.time("cycles", || area(&g));
+        info.area_reference = p.stop_ratio
+            * match p.area_reference {
+                AreaReference::Volume => n as f64 * c * c,
+                AreaReference::InitialArea => a0,
+            };
+        info.nodes_per_iteration.push(n);
+        info.area_per_iteration.push(a0);
+        let mut a_t = a0;
+        info.converged = a_t <= info.area_reference;
+        while !info.converged && info.iterations < p.max_iterations {
+            let (moved, stats) = pool.install(|| {
+                let twins = clock.time("laplacian", || g.graph.twins());
+                let (ln, lm, skeletal) = clock.time("laplacian", || {
+                    (
+                        laplacian::l2_norm(&g.graph, &twins, &g.positions),
+                        laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight),
+                        laplacian::skeletal(&g.graph, &g.positions, p),
+                    )
+                });
+                let anchor2 = laplacian::anchors(&skeletal, p).into_iter().map(|w| w * w).collect();
+                let op = NormalOperator {
+                    graph: &g.graph,
+                    ln: &ln,
+                    lm: &lm,
+                    a2: p.alpha * p.alpha,
+                    b2: p.beta * p.beta,
+                    anchor2,
+                };
+                let (positions, stats) =
+                    clock.time("solve", || solver::contract(&op, &g.positions, p.cg_tol, p.cg_max_iterations));
+                ((positions, skeletal), stats)
+            });
+            let (positions, skeletal) = moved;
+            g.positions = positions;
+            g = clock.time("decimate", || pool.install(|| decimate(&g, &skeletal, c)))?;
+            a_t = clock.time("cycles", || area(&g));
+            info.iterations += 1;
+            info.cg_iterations.push(stats.iterations);
+            info.cg_unconverged += usize::from(!stats.converged);
+            info.nodes_per_iteration.push(g.positions.len());
+            info.area_per_iteration.push(a_t);
+            info.converged = a_t <= info.area_reference;
+            let measure = if info.area_reference > 0.0 { a_t / info.area_reference } else { 0.0 };
+            report(observer, "contract", info.iterations, g.positions.len(), measure)?;
+        }
+
+        // Refinement (§III-G).
+        let max_area = p.refine_area * c * c;
+        info.refine_converged = false;
+        while info.refine_iterations < p.max_refine_iterations {
+            let step = clock
+                .time("refine", || pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)));
+            let Some((positions, moved, kept)) = step else {
+                info.refine_converged = true;
+                break;
+            };
+            g.positions = positions;
+            let keep: Vec<bool> = moved.iter().map(|m| !m).collect();
+            g = clock.time("refine", || pool.install(|| decimate(&g, &keep, c)))?;
+            info.refine_iterations += 1;
+            report(observer, "refine", info.refine_iterations, g.positions.len(), kept as f64)?;
+        }
+        if !info.refine_converged {
+            info.refine_converged =
+                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)).is_none();
+        }
+
+        let out = clock.time("output", || {
+            let shift = p.radius_correction * c;
+            Skeleton {
+                radii: g.radii.iter().map(|r| (r - shift).max(0.0)).collect(),
+                edges: g.graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
+                positions: std::mem::take(&mut g.positions),
+                spacing,
+                info: RunInfo::default(),
+            }
+        });
+        report(observer, "output", 0, out.positions.len(), 0.0)?;
+        info.stage_seconds = clock.0;
+        Ok(Skeleton { info, ..out })
+    }
+}

@@ -1,0 +1,256 @@
+//! The method's invariants on analytic shapes (issue 2, METHOD.md §4): each test
+//! would fail if the flow, decimation, refinement or bookkeeping were wrong.
+
+use ndarray::{Array3, ArrayView3};
+use petgraph::unionfind::UnionFind;
+use vesselflow::shapes::{self, capsules, segment_distance, Capsule};
+use vesselflow::{Params, Skeleton, Skeletonizer, Value};
+
+fn run_with(mask: ArrayView3<'_, u8>, spacing: [f64; 3], params: Params) -> Skeleton {
+    Skeletonizer::new(params).unwrap().run(mask, spacing, &mut |_| true).unwrap()
+}
+
+fn run(mask: &Array3<u8>) -> Skeleton {
+    run_with(mask.view(), [1.0; 3], Params::default())
+}
+
+fn components(s: &Skeleton) -> usize {
+    let mut uf = UnionFind::<usize>::new(s.len());
+    for &[a, b] in &s.edges {
+        uf.union(a, b);
+    }
+    (0..s.len()).filter(|&i| uf.find(i) == i).count()
+}
+
+/// Independent cycles: E - N + components.
+fn cycle_rank(s: &Skeleton) -> usize {
+    s.edges.len() + components(s) - s.len()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Every node within one voxel (Chebyshev, i.e. inside the mask dilated by a 3×3×3 cube).
+fn assert_inside_dilated(mask: &Array3<u8>, s: &Skeleton) {
+    let (n0, n1, n2) = mask.dim();
+    for p in &s.positions {
+        let v = [0, 1, 2].map(|d| (p[d] / s.spacing[d]).round() as isize);
+        let mut hit = false;
+        for a in -1..=1 {
+            for b in -1..=1 {
+                for c in -1..=1 {
+                    let (i, j, k) = (v[0] + a, v[1] + b, v[2] + c);
+                    if i >= 0 && j >= 0 && k >= 0 && (i as usize) < n0 && (j as usize) < n1 && (k as usize) < n2 {
+                        hit |= mask[[i as usize, j as usize, k as usize]] != 0;
+                    }
+                }
+            }
+        }
+        assert!(hit, "node {p:?} is outside the dilated mask");
+    }
+}
+
+#[test]
+fn straight_cylinder_gives_a_centred_path_with_the_right_radius() {
+    let mask = shapes::cylinder([48, 21, 21], 4.0);
+    let s = run(&mask);
+    eprintln!("cylinder: {} nodes, info {:?}", s.len(), s.info);
+    assert!(s.info.converged);
+    assert!(s.len() >= 20, "too few nodes: {}", s.len());
+    assert_eq!(components(&s), 1);
+    assert_eq!(cycle_rank(&s), 0);
+    assert!(s.degrees().iter().all(|&d| d <= 2), "not a path");
+    for p in &s.positions {
+        let off = ((p[1] - 10.0).powi(2) + (p[2] - 10.0).powi(2)).sqrt();
+        assert!(off <= 0.5, "node {p:?} is {off} from the axis");
+    }
+    let r = median(s.radii.clone());
+    assert!((r - 4.0).abs() <= 0.4, "median radius {r}");
+    assert_inside_dilated(&mask, &s);
+}
+
+#[test]
+fn solid_torus_keeps_its_one_loop_on_the_centre_circle() {
+    let mask = shapes::torus([13, 53, 53], 20.0, 4.0);
+    let s = run(&mask);
+    eprintln!("torus: {} nodes, info {:?}", s.len(), s.info);
+    assert_eq!(components(&s), 1);
+    assert_eq!(cycle_rank(&s), 1);
+    let mut worst: f64 = 0.0;
+    for p in &s.positions {
+        let (x, y, z) = (p[0] - 6.0, p[1] - 26.0, p[2] - 26.0);
+        let d = (((y * y + z * z).sqrt() - 20.0).powi(2) + x * x).sqrt();
+        worst = worst.max(d);
+    }
+    assert!(worst <= 0.5, "a node is {worst} from the centre circle");
+    assert!(s.len() >= 60, "ring too coarse: {} nodes", s.len());
+    assert_inside_dilated(&mask, &s);
+}
+
+#[test]
+fn y_bifurcation_has_one_junction_at_the_fork() {
+    let (mask, fork) = shapes::y_bifurcation([15, 64, 64], 3.0);
+    let s = run(&mask);
+    let deg = s.degrees();
+    let junctions: Vec<usize> = (0..s.len()).filter(|&i| deg[i] >= 3).collect();
+    eprintln!(
+        "Y: {} nodes, junctions {:?}",
+        s.len(),
+        junctions.iter().map(|&i| (deg[i], s.positions[i])).collect::<Vec<_>>()
+    );
+    assert_eq!(junctions.len(), 1);
+    assert_eq!(deg[junctions[0]], 3);
+    let p = s.positions[junctions[0]];
+    let d = ((p[0] - fork[0]).powi(2) + (p[1] - fork[1]).powi(2) + (p[2] - fork[2]).powi(2)).sqrt();
+    assert!(d <= 2.0, "junction {p:?} is {d} from the fork {fork:?}");
+    assert_eq!(deg.iter().filter(|&&x| x == 1).count(), 3);
+    assert_eq!(cycle_rank(&s), 0);
+    assert_inside_dilated(&mask, &s);
+}
+
+#[test]
+fn disjoint_tubes_stay_apart_and_whole() {
+    let parts = [
+        Capsule { a: [5.0, 5.0, 5.0], b: [5.0, 40.0, 8.0], r: 2.5 },
+        Capsule { a: [12.0, 5.0, 20.0], b: [12.0, 40.0, 20.0], r: 3.0 },
+    ];
+    let mask = capsules([18, 46, 26], [1.0; 3], &parts);
+    let s = run(&mask);
+    assert_eq!(s.info.mask_components, 2);
+    assert_eq!(components(&s), 2);
+    assert_inside_dilated(&mask, &s);
+}
+
+#[test]
+fn each_26_component_is_one_graph_component() {
+    // Pieces that touch only along an edge or at a corner count as one component.
+    let mut mask = Array3::<u8>::zeros((24, 16, 16));
+    for i in 2..8 {
+        for j in 2..8 {
+            for k in 2..8 {
+                mask[[i, j, k]] = 1; // block A
+                mask[[i + 6, j + 6, k + 6]] = 1; // block B, corner contact with A
+                mask[[i + 14, j, k]] = 1; // block C, two voxels from B
+            }
+        }
+    }
+    let s = run(&mask);
+    assert_eq!(s.info.mask_components, 2);
+    assert_eq!(components(&s), 2);
+}
+
+#[test]
+fn anisotropic_spacing_gives_the_same_physical_centreline() {
+    // A tilted tube, sampled at spacing (2, 1, 1) and at (1, 1, 1).
+    let tube = [Capsule { a: [4.0, 4.0, 6.0], b: [36.0, 30.0, 14.0], r: 3.5 }];
+    let coarse = capsules([21, 36, 21], [2.0, 1.0, 1.0], &tube);
+    let fine = capsules([41, 36, 21], [1.0, 1.0, 1.0], &tube);
+    let a = run_with(coarse.view(), [2.0, 1.0, 1.0], Params::default());
+    let b = run_with(fine.view(), [1.0; 3], Params::default());
+    for (s, t) in [(&a, &b), (&b, &a)] {
+        for p in &s.positions {
+            // Compare away from the caps, where the truncation differs by a voxel.
+            if segment_distance(*p, tube[0].a, tube[0].b) > 2.0 || p[0] < 10.0 || p[0] > 30.0 {
+                continue;
+            }
+            let near = t.edges.iter().map(|&[i, j]| segment_distance(*p, t.positions[i], t.positions[j]));
+            let d = near.fold(f64::INFINITY, f64::min);
+            assert!(d <= 1.0, "node {p:?} is {d} from the other sampling's graph");
+        }
+        // Both are centred on the true axis.
+        let worst = s.positions.iter().filter(|p| p[0] > 10.0 && p[0] < 30.0);
+        let worst = worst.map(|p| segment_distance(*p, tube[0].a, tube[0].b)).fold(0.0, f64::max);
+        eprintln!("anisotropy: worst distance to the true axis {worst}");
+        assert!(worst <= 1.0, "{worst} off axis");
+    }
+    assert_eq!(cycle_rank(&a), 0);
+    assert_eq!(components(&a), 1);
+}
+
+#[test]
+fn output_is_identical_for_one_and_two_threads() {
+    let mask = shapes::demo_volume();
+    let mut one = Params::default();
+    one.set("threads", &Value::Int(1)).unwrap();
+    let mut two = Params::default();
+    two.set("threads", &Value::Int(2)).unwrap();
+    let a = run_with(mask.view(), [1.0; 3], one);
+    let b = run_with(mask.view(), [1.0; 3], two);
+    assert_eq!(a.positions.len(), b.positions.len());
+    assert!(a.positions.iter().zip(&b.positions).all(|(p, q)| p.map(f64::to_bits) == q.map(f64::to_bits)));
+    assert!(a.radii.iter().zip(&b.radii).all(|(p, q)| p.to_bits() == q.to_bits()));
+    assert_eq!(a.edges, b.edges);
+    assert_eq!(a.info.iterations, b.info.iterations);
+}
+
+#[test]
+fn demo_volume_keeps_its_loop() {
+    let mask = shapes::demo_volume();
+    let s = run(&mask);
+    eprintln!("demo: {} nodes {} edges, info {:?}", s.len(), s.edges.len(), s.info);
+    assert_eq!(components(&s), 1);
+    assert_eq!(cycle_rank(&s), 1);
+    assert_inside_dilated(&mask, &s);
+}
+
+#[test]
+fn edge_cases() {
+    // Empty mask: empty graph.
+    let s = run(&Array3::<u8>::zeros((8, 8, 8)));
+    assert!(s.is_empty() && s.edges.is_empty());
+    // Zero-size array: empty graph.
+    assert!(run(&Array3::<u8>::zeros((0, 4, 4))).is_empty());
+    // One voxel: one node at its centre, radius EDT 1 minus the half-voxel correction.
+    let mut one = Array3::<u8>::zeros((5, 5, 5));
+    one[[2, 3, 1]] = 1;
+    let s = run(&one);
+    assert_eq!(s.positions, vec![[2.0, 3.0, 1.0]]);
+    assert_eq!(s.radii, vec![0.5]);
+    assert!(s.edges.is_empty());
+    // A one-voxel-thin bent line: a path through every voxel.
+    let mut line = Array3::<u8>::zeros((3, 12, 12));
+    for t in 0..10 {
+        line[[1, 1 + t, 1 + t.min(5)]] = 1;
+    }
+    let s = run(&line);
+    assert_eq!(components(&s), 1);
+    assert_eq!(cycle_rank(&s), 0);
+    assert!(s.degrees().iter().all(|&d| d <= 2));
+    assert_eq!(s.degrees().iter().filter(|&&d| d == 1).count(), 2);
+    // All foreground: refused with a message.
+    let e =
+        Skeletonizer::new(Params::default())
+            .unwrap()
+            .run(Array3::<u8>::ones((4, 4, 4)).view(), [1.0; 3], &mut |_| true);
+    assert!(matches!(e, Err(vesselflow::Error::AllForeground(64))));
+}
+
+#[test]
+fn bad_input_is_refused_with_a_named_error() {
+    let m = shapes::cylinder([10, 9, 9], 2.0);
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    for bad in [[0.0, 1.0, 1.0], [1.0, f64::NAN, 1.0], [1.0, 1.0, -2.0], [f64::INFINITY, 1.0, 1.0]] {
+        let e = sk.run(m.view(), bad, &mut |_| true).unwrap_err();
+        assert!(e.to_string().contains("spacing"), "{e}");
+    }
+    let p = Params { gamma: -1.0, ..Params::default() };
+    assert!(Skeletonizer::new(p).unwrap_err().to_string().contains("`gamma`"));
+    // The observer can stop a run.
+    let mut calls = 0;
+    let e = sk.run(m.view(), [1.0; 3], &mut |_| {
+        calls += 1;
+        calls < 3
+    });
+    assert_eq!(e.unwrap_err(), vesselflow::Error::Interrupted);
+}
+
+#[test]
+fn strided_and_transposed_masks_agree_with_contiguous_ones() {
+    let (mask, _) = shapes::y_bifurcation([9, 40, 40], 2.5);
+    let t = mask.view().reversed_axes();
+    let a = run_with(t, [1.0; 3], Params::default());
+    let b = run_with(t.to_owned().view(), [1.0; 3], Params::default());
+    assert_eq!((a.positions, a.radii, a.edges), (b.positions, b.radii, b.edges));
+}
