@@ -66,7 +66,14 @@ pub fn medial(g: &Csr, twins: &[usize], radii: &[f64], kind: MedialWeight) -> La
 
 /// Skeleton-like nodes (METHOD.md §2.3): degree > 1 and every neighbour direction
 /// collinear with the direction to the first neighbour within `skeletal_angle`
-/// degrees (parallel or antiparallel). A coincident neighbour disqualifies.
+/// degrees. Two further conditions make the test mean "a node of a curve":
+/// neighbours lie on both sides (some pair is antiparallel, so a fan of neighbours
+/// all on one side does not count), and no two neighbours are joined (a node of a
+/// triangle is never a curve node). Without them, the three nodes of a flattened
+/// triangle pass the paper's `|cos| >= cos(angle)` test, are anchored ten times
+/// harder and kept out of decimation, and such triangles never go away: on
+/// `damseh_synth2` a thousand of them stall the convergence measure above its
+/// threshold for all 100 iterations. A coincident neighbour disqualifies.
 pub fn skeletal(g: &Csr, positions: &[[f64; 3]], params: &Params) -> Vec<bool> {
     let min_cos = params.skeletal_angle.to_radians().cos();
     (0..g.nodes())
@@ -84,9 +91,16 @@ pub fn skeletal(g: &Csr, positions: &[[f64; 3]], params: &Params) -> Vec<bool> {
                 (n > 0.0).then(|| [d[0] / n, d[1] / n, d[2] / n])
             };
             let Some(first) = dir(nb[0]) else { return false };
-            nb[1..].iter().all(|&j| {
-                dir(j).is_some_and(|u| (u[0] * first[0] + u[1] * first[1] + u[2] * first[2]).abs() >= min_cos)
-            })
+            let mut both_sides = false;
+            for &j in &nb[1..] {
+                let Some(u) = dir(j) else { return false };
+                let cos = u[0] * first[0] + u[1] * first[1] + u[2] * first[2];
+                if cos.abs() < min_cos {
+                    return false;
+                }
+                both_sides |= cos < 0.0;
+            }
+            both_sides && nb.iter().all(|&j| g.neighbours(j as usize).iter().all(|k| nb.binary_search(k).is_err()))
         })
         .collect()
 }
@@ -138,6 +152,13 @@ mod tests {
         assert_eq!(skeletal(&g, &straight, &p), vec![false, true, false]);
         let bent = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 1.0, 0.0]];
         assert_eq!(skeletal(&g, &bent, &p), vec![false, false, false]);
+        // A flattened triangle: collinear, but no node of it is a curve node.
+        let tri = Csr::from_sorted_edges(3, &[(0, 1), (0, 2), (1, 2)]);
+        let flat = [[0.0, 0.0, 0.0], [1.0, 0.01, 0.0], [2.0, 0.0, 0.0]];
+        assert_eq!(skeletal(&tri, &flat, &p), vec![false, false, false]);
+        // A fan: both neighbours on the same side.
+        let fan = Csr::from_sorted_edges(3, &[(0, 1), (0, 2)]);
+        assert_eq!(skeletal(&fan, &flat, &p), vec![false, false, false]);
         assert_eq!(anchors(&[true, false], &p), vec![0.5, 0.05]);
     }
 }
