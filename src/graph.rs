@@ -25,9 +25,11 @@ pub struct RunInfo {
     pub refine_converged: bool,
     /// Nodes after each contraction iteration (entry 0: the initial grid graph).
     pub nodes_per_iteration: Vec<usize>,
-    /// Short-cycle area `A_t` after each contraction iteration, physical units squared.
+    /// Short-cycle area `A_t`, physical units squared: entry 0 of the initial grid
+    /// graph, then after each contraction iteration (indexed like `nodes_per_iteration`).
     pub area_per_iteration: Vec<f64>,
-    /// The area the stop test compares against (`stop_ratio * area_reference`).
+    /// The stop level: `stop_ratio` times the reference area; the contraction stops
+    /// at the first `A_t` at or below it.
     pub area_reference: f64,
     /// Conjugate-gradient iterations of each contraction iteration.
     pub cg_iterations: Vec<usize>,

@@ -261,3 +261,16 @@ fn strided_and_transposed_masks_agree_with_contiguous_ones() {
     let b = run_with(t.to_owned().view(), [1.0; 3], Params::default());
     assert_eq!((a.positions, a.radii, a.edges), (b.positions, b.radii, b.edges));
 }
+
+#[test]
+fn a_long_thick_tube_contracts_to_a_path() {
+    // Fundamental cycles of a breadth-first tree are as long as the tube across its
+    // cross-sections; the convergence measure must still see them.
+    let mask = shapes::cylinder([1500, 31, 31], 8.0);
+    let s = run(&mask);
+    eprintln!("long tube: {} nodes, {} iterations, nodes {:?}", s.len(), s.info.iterations, s.info.nodes_per_iteration);
+    assert!(s.info.converged);
+    assert_eq!(cycle_rank(&s), 0);
+    assert!(s.degrees().iter().all(|&d| d <= 2), "not a path");
+    assert!(s.len() < 2000, "{} nodes for a 1500-voxel tube", s.len());
+}
