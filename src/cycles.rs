@@ -146,7 +146,7 @@ pub fn short_cycles(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> Vec<Cy
 
 /// `A_t`: the summed area of the short fundamental cycles.
 pub fn short_cycle_area(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> f64 {
-    short_cycles(g, positions, max_nodes).iter().map(|c| c.area).sum()
+    short_cycles(g, positions, max_nodes).iter().fold(0.0, |acc, c| acc + c.area)
 }
 
 /// One refinement move (eq. 11): every node of a kept cycle (area below

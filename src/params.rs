@@ -27,7 +27,11 @@ pub enum MedialWeight {
 /// Reference area of the convergence test (METHOD.md §2.6).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AreaReference {
-    /// Number of foreground voxels, in `c^2` units (the authors' code; default).
+    /// Foreground volume in base cells, in `c^2` units: the number of foreground
+    /// voxels times `c^2` on an isotropic grid (the authors' code; default). On an
+    /// anisotropic grid it counts the base cells the mask covers, so the stop level
+    /// does not shrink with the finest spacing while the cycles keep the size of the
+    /// coarse voxels.
     Volume,
     /// Short-cycle area of the initial grid graph (the paper's `A_0`).
     InitialArea,

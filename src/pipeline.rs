@@ -143,7 +143,8 @@ impl Skeletonizer {
         let a0 = clock.time("cycles", || area(&g));
         info.area_reference = p.stop_ratio
             * match p.area_reference {
-                AreaReference::Volume => n as f64 * c * c,
+                // Foreground volume in base cells, times c²: N c² when isotropic.
+                AreaReference::Volume => n as f64 * spacing.iter().product::<f64>() / c,
                 AreaReference::InitialArea => a0,
             };
         info.nodes_per_iteration.push(n);

@@ -174,6 +174,7 @@ fn anisotropic_spacing_gives_the_same_physical_centreline() {
     }
     assert_eq!(cycle_rank(&a), 0);
     assert_eq!(components(&a), 1);
+    assert!(a.info.converged && b.info.converged);
 }
 
 #[test]
