@@ -1,0 +1,472 @@
+"""End-to-end benchmark: vesselflow next to its peers on synthetic vascular beds.
+
+One command::
+
+    python benches/e2e.py [--sizes 128 256] [--threads N] [--out benches/results/e2e.md]
+
+For each size it makes a bed with ``benches/synthetic.py`` (seed 0, about 5 % foreground)
+and runs, each in its own subprocess so that each peak RSS is its own:
+
+- ``vesselflow.skeletonize(mask, spacing, threads=N)``: per-stage seconds from
+  ``info["stage_seconds"]``, contraction and refinement iterations, nodes and edges;
+- ``edt.edt(mask, anisotropy=spacing, black_border=True, parallel=N)``: the distance
+  transform alone, a floor for any method that starts with one;
+- scikit-image ``skeletonize`` + ``skan.Skeleton``: voxel thinning and its branch graph
+  (single-threaded; skan's numba functions are compiled before timing);
+- kimimaro (TEASAR) at the ``--kimimaro-sizes`` only (default 128), with ``parallel=1``
+  and the parameters in ``KIMIMARO_TEASAR`` below.
+
+Then vesselflow alone on ``damseh_synth2`` (../shared/data), whose CPU-seconds are set
+against the 327 CPU-seconds the authors' Python code took on it.
+
+Each child reports wall seconds, CPU seconds (user + system, all threads), and its peak
+RSS (``ru_maxrss`` read after the work; the high-water mark is reset through
+``/proc/self/clear_refs`` once the mask is loaded) minus its RSS at that moment: the memory
+the method itself needed, also given per foreground voxel. A peer whose package is missing
+gets a "not installed" row and the run goes on. The table is printed and written to
+``--out`` (atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+DAMSEH = ROOT.parent / "shared" / "data" / "damseh_synth2.npz"
+#: The authors' code on damseh_synth2 (the issue's reference), CPU-seconds.
+AUTHORS_CPU_SECONDS = 327.0
+#: Targets from the issue, shown next to the measurements.
+TARGET_SPEEDUP = 300.0
+TARGET_BYTES_PER_VOXEL = 150.0
+TOOLS = ("vesselflow", "edt", "skimage+skan", "kimimaro")
+#: Distribution names of each tool's packages, for the versions line and the
+#: "not installed" check.
+PACKAGES = {
+    "vesselflow": ("vesselflow",),
+    "edt": ("edt",),
+    "skimage+skan": ("scikit-image", "skan"),
+    "kimimaro": ("kimimaro",),
+}
+#: TEASAR parameters for kimimaro. Its defaults (const = 300) are for nanometre
+#: connectomics; here units are voxels, so the invalidation sphere around each path
+#: point is 1.5 x its boundary distance + 2 voxels. The soma settings are the defaults;
+#: no vessel is thick enough to trigger them.
+KIMIMARO_TEASAR = {
+    "scale": 1.5,
+    "const": 2.0,
+    "pdrf_scale": 100000,
+    "pdrf_exponent": 4,
+    "soma_acceptance_threshold": 3500,
+    "soma_detection_threshold": 750,
+    "soma_invalidation_const": 300,
+    "soma_invalidation_scale": 2,
+}
+
+
+# --------------------------------------------------------------------------- child side
+
+
+def _rss_bytes() -> int:
+    """Current resident set size of this process (Linux)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError("no VmRSS in /proc/self/status")
+
+
+def _reset_peak_rss() -> None:
+    """Make ``ru_maxrss`` forget peaks before now (Linux >= 4.0), e.g. the imports'.
+
+    Without it a transient peak while importing could hide the work's own peak.
+    """
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _prepare(tool: str, threads: int, spacing: tuple[float, float, float]):
+    """Import ``tool`` and return ``(convert, run)``: the mask's conversion to the tool's
+    input (not timed) and the timed work, which returns ``(stages, result)``."""
+    if tool == "vesselflow":
+        import vesselflow
+
+        def run(mask):
+            graph = vesselflow.skeletonize(mask, spacing=spacing, threads=threads)
+            info = graph.info
+            return dict(info["stage_seconds"]), {
+                "nodes": len(graph.positions),
+                "edges": len(graph.edges),
+                "iterations": info["iterations"],
+                "converged": info["converged"],
+                "refine_iterations": info["refine_iterations"],
+            }
+
+        return (lambda m: m), run
+    if tool == "edt":
+        import edt
+
+        def run(mask):
+            edt.edt(mask, anisotropy=spacing, black_border=True, parallel=threads)
+            return {}, {}
+
+        return (lambda m: m), run
+    if tool == "skimage+skan":
+        import skan
+        from skimage.morphology import skeletonize
+
+        # Compile skan's numba functions now, not inside the timed call.
+        tiny = np.zeros((5, 5, 5), dtype=bool)
+        tiny[1:4, 2, 2] = True
+        skan.Skeleton(tiny)
+
+        def run(mask):
+            t0 = time.perf_counter()
+            skel = skeletonize(mask)
+            t1 = time.perf_counter()
+            graph = skan.Skeleton(skel, spacing=spacing)
+            t2 = time.perf_counter()
+            return {"skeletonize": t1 - t0, "skan": t2 - t1}, {
+                "nodes": int(np.count_nonzero(skel)),
+                "branches": int(graph.n_paths),
+            }
+
+        return (lambda m: m), run
+    if tool == "kimimaro":
+        import kimimaro
+
+        def run(labels):
+            skels = kimimaro.skeletonize(
+                labels,
+                teasar_params=KIMIMARO_TEASAR,
+                anisotropy=spacing,
+                dust_threshold=0,
+                fix_branching=True,
+                progress=False,
+                parallel=1,
+            )
+            return {}, {
+                "nodes": sum(len(s.vertices) for s in skels.values()),
+                "edges": sum(len(s.edges) for s in skels.values()),
+            }
+
+        return (lambda m: m.astype(np.uint8)), run
+    raise ValueError(f"unknown tool {tool!r}")
+
+
+def child(tool: str, mask_path: str, spacing: tuple[float, float, float], threads: int):
+    """Run one tool on one mask in this process; print one JSON line."""
+    try:
+        convert, run = _prepare(tool, threads, spacing)
+    except ModuleNotFoundError as e:
+        print(json.dumps({"status": "not installed", "detail": str(e)}))
+        return
+    except ImportError as e:  # installed but broken: say why
+        print(json.dumps({"status": "error", "detail": f"ImportError: {e}"}))
+        return
+    data = convert(np.load(mask_path))
+    foreground = int(np.count_nonzero(data))
+    _reset_peak_rss()
+    baseline = _rss_bytes()
+    cpu0, t0 = _cpu_seconds(), time.perf_counter()
+    try:
+        stages, result = run(data)
+    except BaseException as e:  # a Rust panic arrives as a BaseException subclass
+        if isinstance(e, KeyboardInterrupt):
+            raise
+        print(json.dumps({"status": "error", "detail": f"{type(e).__name__}: {e}"}))
+        return
+    wall, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+    print(
+        json.dumps(
+            {
+                "status": "ok",
+                "foreground": foreground,
+                "wall": wall,
+                "cpu": cpu,
+                "peak_extra": max(0, peak - baseline),
+                "stages": stages,
+                "result": result,
+            }
+        )
+    )
+
+
+# -------------------------------------------------------------------------- parent side
+
+
+def run_child(tool, mask_path, spacing, threads, timeout) -> dict:
+    """Run ``tool`` in a fresh interpreter; its report, or why there is none."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", tool]
+    cmd += ["--mask", str(mask_path), "--threads", str(threads), "--spacing"]
+    cmd += [repr(float(s)) for s in spacing]
+    print(f"  {tool} ...", end="", flush=True, file=sys.stderr)
+    try:
+        done = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        report = {"status": "error", "detail": f"timed out after {timeout:g} s"}
+    else:
+        lines = done.stdout.strip().splitlines()
+        try:
+            report = json.loads(lines[-1])
+        except (IndexError, json.JSONDecodeError):
+            tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+            report = {"status": "error", "detail": tail}
+    if report["status"] == "ok":
+        print(f" {report['wall']:.2f} s", file=sys.stderr)
+    else:
+        print(f" {report['status']}: {report.get('detail', '')}", file=sys.stderr)
+    return report
+
+
+def versions() -> str:
+    names = ["numpy"] + [p for t in TOOLS for p in PACKAGES[t]]
+    out = []
+    for name in names:
+        try:
+            out.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            out.append(f"{name} (not installed)")
+    return ", ".join(out)
+
+
+def machine() -> str:
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return (
+        f"nproc {os.cpu_count()} ({model}), {mem:.0f} GiB RAM, {platform.system()} "
+        f"{platform.release()}, Python {platform.python_version()}"
+    )
+
+
+def _fmt_stages(stages: dict) -> str:
+    return ", ".join(f"{k} {v:.3g}" for k, v in stages.items()) or "—"
+
+
+def _fmt_result(tool: str, r: dict) -> str:
+    if tool == "vesselflow":
+        conv = "converged" if r["converged"] else "NOT converged"
+        return (
+            f"{r['nodes']} nodes, {r['edges']} edges; {r['iterations']} it. ({conv}), "
+            f"{r['refine_iterations']} refine it."
+        )
+    if tool == "skimage+skan":
+        return f"{r['nodes']} skeleton voxels, {r['branches']} branches"
+    if tool == "kimimaro":
+        return f"{r['nodes']} vertices, {r['edges']} edges"
+    return "—"
+
+
+def table(rows: list[tuple[str, str, dict]]) -> list[str]:
+    out = [
+        (
+            "| volume | tool | stages (s) | wall (s) | CPU (s) | peak RSS over mask (MiB) "
+            "| B / fg voxel | µs / fg voxel | result |"
+        ),
+        "|---|---|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for volume, tool, rep in rows:
+        if rep["status"] != "ok":
+            status = rep["status"]
+            detail = rep.get("detail", "") if status != "not installed" else ""
+            note = f"{status}: {detail}" if detail else status
+            out.append(f"| {volume} | {tool} | {note} | | | | | | |")
+            continue
+        fg = rep["foreground"]
+        out.append(
+            f"| {volume} | {tool} | {_fmt_stages(rep['stages'])} | {rep['wall']:.3f} "
+            f"| {rep['cpu']:.3f} | {rep['peak_extra'] / 2**20:.1f} "
+            f"| {rep['peak_extra'] / fg:.0f} | {1e6 * rep['wall'] / fg:.2f} "
+            f"| {_fmt_result(tool, rep['result'])} |"
+        )
+    return out
+
+
+def ratios(rows: list[tuple[str, str, dict]]) -> list[str]:
+    """Peer ÷ vesselflow, wall and CPU, per volume that has both."""
+    by = {(v, t): r for v, t, r in rows if r["status"] == "ok"}
+    volumes = list(dict.fromkeys(v for v, _, _ in rows))
+    out = [
+        "| volume | peer | wall ratio | CPU ratio | peak-memory ratio |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for v in volumes:
+        ours = by.get((v, "vesselflow"))
+        for peer in TOOLS[1:]:
+            theirs = by.get((v, peer))
+            if ours is None or theirs is None:
+                continue
+            mem = theirs["peak_extra"] / ours["peak_extra"] if ours["peak_extra"] else float("nan")
+            out.append(
+                f"| {v} | {peer} | {theirs['wall'] / ours['wall']:.2f} "
+                f"| {theirs['cpu'] / ours['cpu']:.2f} | {mem:.2f} |"
+            )
+    return out
+
+
+def write_atomic(text: str, path: Path) -> None:
+    """Write ``text`` to ``path`` through a temp file in the same folder and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    parser.add_argument("--kimimaro-sizes", type=int, nargs="*", default=[128])
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--seed", type=int, default=0, help="synthetic bed seed")
+    parser.add_argument("--tools", nargs="+", choices=TOOLS, default=list(TOOLS))
+    parser.add_argument("--damseh", type=Path, default=DAMSEH, help="damseh_synth2.npz")
+    parser.add_argument("--timeout", type=float, default=3600, help="seconds per child")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "e2e.md")
+    parser.add_argument("--child", choices=TOOLS, help=argparse.SUPPRESS)
+    parser.add_argument("--mask", help=argparse.SUPPRESS)
+    parser.add_argument("--spacing", type=float, nargs=3, default=[1.0] * 3, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args.child, args.mask, tuple(args.spacing), args.threads)
+        return
+    if args.threads < 1:
+        parser.error(f"--threads must be at least 1, got {args.threads}")
+    if any(s < 16 for s in args.sizes):
+        parser.error("--sizes must be at least 16")
+
+    sys.path.insert(0, str(HERE))
+    from synthetic import describe, vascular_bed
+
+    rows: list[tuple[str, str, dict]] = []
+    volumes: list[str] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.sizes:
+            t0 = time.perf_counter()
+            mask = vascular_bed(size, seed=args.seed)
+            fraction, components = describe(mask)
+            label = f"{size}³"
+            volumes.append(
+                f"- {label}: synthetic bed (seed {args.seed}), {np.count_nonzero(mask)} fg "
+                f"voxels ({100 * fraction:.2f} %), {components} 26-component(s), "
+                f"made in {time.perf_counter() - t0:.1f} s"
+            )
+            path = Path(tmp) / f"bed{size}.npy"
+            np.save(path, mask)
+            del mask
+            print(f"{label}:", file=sys.stderr)
+            for tool in args.tools:
+                if tool == "kimimaro" and size not in args.kimimaro_sizes:
+                    continue
+                rows.append(
+                    (
+                        label,
+                        tool,
+                        run_child(tool, path, (1.0,) * 3, args.threads, args.timeout),
+                    )
+                )
+        if "vesselflow" in args.tools:
+            label = "damseh_synth2"
+            if args.damseh.is_file():
+                d = np.load(args.damseh)
+                path = Path(tmp) / "damseh.npy"
+                np.save(path, d["mask"])
+                spacing = tuple(float(s) for s in d["spacing"])
+                volumes.append(
+                    f"- {label}: {args.damseh.name}, shape {d['mask'].shape}, spacing "
+                    f"{spacing}, {np.count_nonzero(d['mask'])} fg voxels"
+                )
+                print(f"{label}:", file=sys.stderr)
+                report = run_child("vesselflow", path, spacing, args.threads, args.timeout)
+            else:
+                report = {"status": "error", "detail": f"{args.damseh} not found"}
+            rows.append((label, "vesselflow", report))
+
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        "# End-to-end benchmark",
+        "",
+        (
+            f"Generated by `python benches/e2e.py --sizes {' '.join(map(str, args.sizes))} "
+            f"--threads {args.threads}` on {now}."
+        ),
+        "",
+        (
+            f"Machine: {machine()}. Threads: vesselflow `threads={args.threads}`, edt "
+            f"`parallel={args.threads}`; scikit-image/skan single-threaded; kimimaro "
+            "`parallel=1`."
+        ),
+        "",
+        f"Versions: {versions()}.",
+        "",
+        (
+            f"kimimaro TEASAR parameters: {KIMIMARO_TEASAR}, `dust_threshold=0`, "
+            "`fix_branching=True`."
+        ),
+        "",
+        "Volumes:",
+        *volumes,
+        "",
+        *table(rows),
+        "",
+        "Peak RSS over mask: the child's peak RSS (`ru_maxrss`) minus its RSS once the",
+        (
+            f"mask was loaded (target ≤ {TARGET_BYTES_PER_VOXEL:g} B per foreground voxel "
+            "for vesselflow). CPU: user + system seconds of all threads."
+        ),
+        "",
+        "## Ratios (peer ÷ vesselflow: above 1, vesselflow is faster or leaner)",
+        "",
+        *ratios(rows),
+        "",
+        "## Against the authors' code",
+        "",
+    ]
+    ours = next((r for v, t, r in rows if v == "damseh_synth2" and r["status"] == "ok"), None)
+    if ours is None:
+        lines.append("damseh_synth2 was not run (see the table).")
+    else:
+        lines.append(
+            f"damseh_synth2: vesselflow {ours['cpu']:.2f} CPU-s ({ours['wall']:.2f} s wall) vs "
+            f"the authors' {AUTHORS_CPU_SECONDS:g} CPU-s: "
+            f"{AUTHORS_CPU_SECONDS / ours['cpu']:.0f}x faster (target ≥ {TARGET_SPEEDUP:g}x)."
+        )
+    text = "\n".join(lines) + "\n"
+    print(text)
+    write_atomic(text, args.out)
+    print(f"wrote {args.out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

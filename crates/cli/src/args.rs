@@ -1,0 +1,204 @@
+//! The command line: clap definitions and their translation into a [`Task`].
+//!
+//! One long option per method parameter is generated from [`Params::NAMES`] and
+//! [`Params::default`], so the program can never fall out of step with the core:
+//! `max_iterations` becomes `--max-iterations`, its help shows the default, and
+//! its value goes through [`Value::parse`] and [`Params::set`], whose errors name
+//! the parameter.
+
+use crate::Failure;
+use clap::error::{ContextKind, ContextValue, ErrorKind};
+use clap::{value_parser, Arg, ArgAction, ArgMatches, Command};
+use std::ffi::OsString;
+use std::path::PathBuf;
+use vesselflow::{Params, Value};
+
+/// How much the program says on stderr.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Verbosity {
+    /// Errors only.
+    Quiet,
+    /// Progress and per-stage timings.
+    Normal,
+    /// Also every contraction iteration.
+    Verbose,
+}
+
+/// What the command line asks for.
+#[derive(Debug)]
+pub(crate) enum Task {
+    Skeletonize { input: PathBuf, output: PathBuf, spacing: Option<[f64; 3]>, params: Params },
+    Demo { output: Option<PathBuf>, params: Params },
+}
+
+/// The parsed command line, or what to do instead of running.
+pub(crate) enum Parsed {
+    Run(Task, Verbosity),
+    /// `--help`, `--version`, or a bare `vesselflow`: print `text` and exit with `code`.
+    Exit {
+        text: String,
+        to_stderr: bool,
+        code: i32,
+    },
+}
+
+/// A parameter value as typed on the command line (so `'radius'` shows as `radius`).
+fn command_line_word(value: &Value) -> String {
+    match value {
+        Value::Bool(b) => b.to_string(),
+        Value::Str(s) => s.clone(),
+        other => other.to_string(),
+    }
+}
+
+fn with_parameter_options(mut cmd: Command) -> Command {
+    for (name, default) in Params::default().values() {
+        cmd = cmd.arg(
+            Arg::new(name)
+                .long(name.replace('_', "-"))
+                .value_name("VALUE")
+                .allow_negative_numbers(true)
+                .help_heading("Method parameters")
+                .help(format!("[default: {}]", command_line_word(&default))),
+        );
+    }
+    cmd.after_help(
+        "Method parameters are those of METHOD.md; in Python they are the keywords of \
+         vesselflow.Skeletonizer, with '_' for '-'.",
+    )
+}
+
+fn output_arg(required: bool) -> Arg {
+    Arg::new("output")
+        .short('o')
+        .long("output")
+        .value_name("OUTPUT")
+        .required(required)
+        .value_parser(value_parser!(PathBuf))
+        .help("Graph file to write: .graphml, .json or .npz (written atomically)")
+}
+
+/// The whole command-line interface.
+pub(crate) fn command() -> Command {
+    let skeletonize = Command::new("skeletonize")
+        .about("Turn a binary vessel mask (.npy, .nii, .nii.gz; non-zero = vessel) into a centreline graph")
+        .arg(
+            Arg::new("input")
+                .value_name("INPUT")
+                .required(true)
+                .value_parser(value_parser!(PathBuf))
+                .help("Mask file: .npy (bool or integer) or NIfTI .nii/.nii.gz (spacing from its header)"),
+        )
+        .arg(output_arg(true))
+        .arg(
+            Arg::new("spacing")
+                .long("spacing")
+                .num_args(3)
+                .value_names(["A", "B", "C"])
+                .allow_negative_numbers(true)
+                .value_parser(value_parser!(f64))
+                .help("Voxel size along axes 0, 1, 2, replacing the file's [default: from the file, else 1 1 1]"),
+        );
+    let demo = Command::new("demo")
+        .about("Run on the built-in synthetic volume (branching tubes with a loop) and print a summary")
+        .arg(output_arg(false));
+    Command::new("vesselflow")
+        .version(env!("CARGO_PKG_VERSION"))
+        .about("Vessel mask to centreline graph by Laplacian flow (Damseh et al.)")
+        .subcommand_required(true)
+        .arg_required_else_help(true)
+        .arg(
+            Arg::new("quiet")
+                .short('q')
+                .long("quiet")
+                .global(true)
+                .action(ArgAction::SetTrue)
+                .conflicts_with("verbose")
+                .help("Print errors only"),
+        )
+        .arg(
+            Arg::new("verbose")
+                .short('v')
+                .long("verbose")
+                .global(true)
+                .action(ArgAction::SetTrue)
+                .help("Also print every contraction iteration (nodes, CG iterations, area ratio)"),
+        )
+        .subcommand(with_parameter_options(skeletonize))
+        .subcommand(with_parameter_options(demo))
+}
+
+/// Parse `args` (program name first).
+pub(crate) fn parse<I, T>(args: I) -> Result<Parsed, Failure>
+where
+    I: IntoIterator<Item = T>,
+    T: Into<OsString> + Clone,
+{
+    let matches = match command().try_get_matches_from(args) {
+        Ok(m) => m,
+        Err(e) => return clap_outcome(&e),
+    };
+    let verbosity = if matches.get_flag("quiet") {
+        Verbosity::Quiet
+    } else if matches.get_flag("verbose") {
+        Verbosity::Verbose
+    } else {
+        Verbosity::Normal
+    };
+    let task = match matches.subcommand() {
+        Some(("skeletonize", m)) => Task::Skeletonize {
+            input: m.get_one::<PathBuf>("input").cloned().unwrap_or_default(),
+            output: m.get_one::<PathBuf>("output").cloned().unwrap_or_default(),
+            spacing: spacing(m)?,
+            params: params(m)?,
+        },
+        Some(("demo", m)) => Task::Demo { output: m.get_one::<PathBuf>("output").cloned(), params: params(m)? },
+        _ => return Err(Failure::Usage("no command given (try --help)".to_string())),
+    };
+    Ok(Parsed::Run(task, verbosity))
+}
+
+/// Help and version go to stdout with success; every parse error becomes one line.
+fn clap_outcome(e: &clap::Error) -> Result<Parsed, Failure> {
+    match e.kind() {
+        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => {
+            Ok(Parsed::Exit { text: e.render().to_string(), to_stderr: false, code: 0 })
+        }
+        ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
+            Ok(Parsed::Exit { text: e.render().to_string(), to_stderr: true, code: crate::EXIT_USAGE })
+        }
+        _ => {
+            // clap's first paragraph is the error (its continuation lines list e.g. the
+            // missing arguments); the rest is usage and tips.
+            let rendered = e.render().to_string();
+            let paragraph: Vec<&str> = rendered.lines().take_while(|l| !l.trim().is_empty()).map(str::trim).collect();
+            let joined = paragraph.join(" ");
+            let mut message = joined.strip_prefix("error: ").unwrap_or(&joined).to_string();
+            if let Some(ContextValue::String(suggested)) = e.get(ContextKind::SuggestedArg) {
+                message.push_str(&format!(" (did you mean {suggested}?)"));
+            }
+            Err(Failure::Usage(message))
+        }
+    }
+}
+
+fn spacing(m: &ArgMatches) -> Result<Option<[f64; 3]>, Failure> {
+    let Some(values) = m.get_many::<f64>("spacing") else {
+        return Ok(None);
+    };
+    let values: Vec<f64> = values.copied().collect();
+    match <[f64; 3]>::try_from(values.as_slice()) {
+        Ok(s) if s.iter().all(|x| x.is_finite() && *x > 0.0) => Ok(Some(s)),
+        _ => Err(Failure::Usage(format!("--spacing: {}", vesselflow::Error::InvalidSpacing(values)))),
+    }
+}
+
+fn params(m: &ArgMatches) -> Result<Params, Failure> {
+    let mut params = Params::default();
+    for name in Params::NAMES {
+        if let Some(word) = m.get_one::<String>(name) {
+            params.set(name, &Value::parse(word)).map_err(|e| Failure::Usage(e.to_string()))?;
+        }
+    }
+    Ok(params)
+}

@@ -1,0 +1,358 @@
+//! The `vesselflow` binary end to end: options generated from the parameters,
+//! one-line errors with the documented exit codes, no output file on failure,
+//! real runs writing every graph format, the demo summary, and interruption.
+
+use ndarray_npy::{NpzReader, WriteNpyExt};
+use std::fs::{self, File};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use tempfile::TempDir;
+use vesselflow::{shapes, Params};
+use vesselflow_io::serde_json::{self, Value};
+
+fn vesselflow(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vesselflow")).args(args).output().unwrap()
+}
+
+fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// The process failed with `code` and said exactly one line, an error naming `needle`.
+fn assert_error(out: &Output, code: i32, needle: &str) {
+    let err = stderr(out);
+    assert_eq!(out.status.code(), Some(code), "stderr: {err}");
+    assert_eq!(err.lines().count(), 1, "one line expected: {err}");
+    assert!(err.starts_with("vesselflow: error: "), "{err}");
+    assert!(err.contains(needle), "{err:?} should name {needle:?}");
+}
+
+fn files_in(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> =
+        fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    names
+}
+
+/// A cylinder of radius 4 along axis 0 with its axis at (·, 10, 10), as `.npy`.
+fn cylinder_npy(dir: &Path) -> PathBuf {
+    let path = dir.join("tube.npy");
+    shapes::cylinder([40, 21, 21], 4.0).write_npy(File::create(&path).unwrap()).unwrap();
+    path
+}
+
+fn path_str(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn help_lists_every_parameter_with_its_default() {
+    for sub in ["skeletonize", "demo"] {
+        let out = vesselflow(&[sub, "--help"]);
+        assert_eq!(out.status.code(), Some(0));
+        let help = stdout(&out);
+        for name in Params::NAMES {
+            let option = format!("--{} <VALUE>", name.replace('_', "-"));
+            let line = help.lines().find(|l| l.contains(&option)).unwrap_or_else(|| panic!("{option} missing"));
+            assert!(line.contains("[default: "), "{line}");
+        }
+    }
+    let help = stdout(&vesselflow(&["skeletonize", "--help"]));
+    let line = |opt: &str| help.lines().find(|l| l.contains(opt)).unwrap().to_string();
+    assert!(line("--gamma <VALUE>").contains("[default: 0.05]"));
+    assert!(line("--medial-weight <VALUE>").contains("[default: radius]"));
+    assert!(line("--reconnect-thin <VALUE>").contains("[default: true]"));
+    assert!(help.contains("--spacing <A> <B> <C>"));
+}
+
+#[test]
+fn bare_command_prints_help_and_fails_version_succeeds() {
+    let out = vesselflow(&[]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(stderr(&out).contains("Usage: vesselflow"));
+    let out = vesselflow(&["--version"]);
+    assert_eq!(out.status.code(), Some(0));
+    assert!(stdout(&out).starts_with("vesselflow "));
+}
+
+#[test]
+fn unknown_parameter_is_a_usage_error_naming_it() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let output = dir.path().join("g.json");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), "--gama", "0.1"]);
+    assert_error(&out, 2, "--gama");
+    assert!(stderr(&out).contains("--gamma"), "suggests the near miss");
+    assert!(!output.exists());
+}
+
+#[test]
+fn bad_parameter_value_is_a_usage_error_naming_the_parameter() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let output = dir.path().join("g.json");
+    for (option, value, name) in [
+        ("--gamma", "abc", "`gamma`"),
+        ("--gamma", "-1", "`gamma`"),
+        ("--connectivity", "7", "`connectivity`"),
+        ("--medial-weight", "median", "`medial_weight`"),
+        ("--reconnect-thin", "maybe", "`reconnect_thin`"),
+        ("--max-iterations", "1.5", "`max_iterations`"),
+    ] {
+        let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), option, value]);
+        assert_error(&out, 2, name);
+    }
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), "--spacing", "1", "0", "1"]);
+    assert_error(&out, 2, "spacing");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), "--spacing", "1", "nan", "1"]);
+    assert_error(&out, 2, "spacing");
+    assert!(!output.exists());
+}
+
+#[test]
+fn missing_input_is_an_io_error_naming_the_file() {
+    let dir = TempDir::new().unwrap();
+    let output = dir.path().join("g.json");
+    let missing = dir.path().join("absent.npy");
+    let out = vesselflow(&["skeletonize", path_str(&missing), "-o", path_str(&output)]);
+    assert_error(&out, 1, "absent.npy");
+    assert!(files_in(dir.path()).is_empty(), "no output, no temporary file");
+}
+
+#[test]
+fn unreadable_input_content_is_an_io_error() {
+    let dir = TempDir::new().unwrap();
+    let input = dir.path().join("image.npy");
+    ndarray::Array3::<f32>::zeros((4, 4, 4)).write_npy(File::create(&input).unwrap()).unwrap();
+    let output = dir.path().join("g.json");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output)]);
+    assert_error(&out, 1, "threshold");
+    assert!(!output.exists());
+}
+
+#[test]
+fn unwritable_output_fails_before_the_run_and_leaves_no_file() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let missing_dir = dir.path().join("nowhere/g.json");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&missing_dir)]);
+    assert_error(&out, 1, "nowhere/g.json");
+    // A regular file where a directory should be (fails for root too).
+    fs::write(dir.path().join("plain"), "x").unwrap();
+    let under_file = dir.path().join("plain/g.npz");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&under_file)]);
+    assert_error(&out, 1, "plain/g.npz");
+    assert_eq!(files_in(dir.path()), ["plain", "tube.npy"]);
+}
+
+#[test]
+fn unsupported_extensions_are_usage_errors() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&dir.path().join("g.csv"))]);
+    assert_error(&out, 2, "g.csv");
+    assert!(stderr(&out).contains(".graphml, .json or .npz"));
+    let tif = dir.path().join("mask.tif");
+    fs::write(&tif, b"II*\0").unwrap();
+    let out = vesselflow(&["skeletonize", path_str(&tif), "-o", path_str(&dir.path().join("g.json"))]);
+    assert_error(&out, 2, "mask.tif");
+    assert!(stderr(&out).contains("vesselflow.load_volume"));
+    assert_eq!(files_in(dir.path()), ["mask.tif", "tube.npy"]);
+}
+
+#[test]
+fn failed_run_keeps_an_existing_output_untouched() {
+    let dir = TempDir::new().unwrap();
+    let output = dir.path().join("g.json");
+    fs::write(&output, "previous result").unwrap();
+    let out = vesselflow(&["skeletonize", path_str(&dir.path().join("absent.npy")), "-o", path_str(&output)]);
+    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(fs::read_to_string(&output).unwrap(), "previous result");
+}
+
+/// Degrees of a graph given as an edge list.
+fn degrees(n: usize, edges: &[[usize; 2]]) -> Vec<usize> {
+    let mut d = vec![0; n];
+    for &[a, b] in edges {
+        d[a] += 1;
+        d[b] += 1;
+    }
+    d
+}
+
+#[test]
+fn skeletonize_a_cylinder_into_every_format() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+
+    let json = dir.path().join("tube.json");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&json), "--gamma", "0.05"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let doc: Value = serde_json::from_reader(File::open(&json).unwrap()).unwrap();
+    assert_eq!(doc["format"], "vesselflow-graph");
+    assert_eq!(doc["spacing"], serde_json::json!([1.0, 1.0, 1.0]));
+    let positions: Vec<[f64; 3]> = serde_json::from_value(doc["positions"].clone()).unwrap();
+    let edges: Vec<[usize; 2]> = serde_json::from_value(doc["edges"].clone()).unwrap();
+    let n = positions.len();
+    assert!(n >= 5, "a path along the tube, got {n} nodes");
+    assert_eq!(edges.len(), n - 1, "a tree with one component: a path");
+    assert!(degrees(n, &edges).iter().all(|&d| d == 1 || d == 2), "a path has no junction");
+    for p in &positions {
+        // Axis 0 runs along the tube; axes 1 and 2 sit on its axis at 10.
+        assert!((p[1] - 10.0).abs() < 1.0 && (p[2] - 10.0).abs() < 1.0, "off axis: {p:?}");
+    }
+    let extent = positions.iter().map(|p| p[0]).fold(f64::NEG_INFINITY, f64::max)
+        - positions.iter().map(|p| p[0]).fold(f64::INFINITY, f64::min);
+    assert!(extent > 25.0, "spans the tube: {extent}");
+    assert_eq!(doc["params"]["gamma"], 0.05);
+    assert_eq!(doc["info"]["foreground_voxels"].as_u64().unwrap() as usize, {
+        let m = shapes::cylinder([40, 21, 21], 4.0);
+        m.iter().filter(|&&v| v != 0).count()
+    });
+
+    let npz = dir.path().join("tube.npz");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&npz), "-q"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let mut reader = NpzReader::new(File::open(&npz).unwrap()).unwrap();
+    let npz_positions: ndarray::Array2<f64> = reader.by_name("positions").unwrap();
+    assert_eq!(npz_positions.nrows(), n, "same run, same graph");
+
+    let graphml = dir.path().join("tube.graphml");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&graphml), "-q"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let text = fs::read_to_string(&graphml).unwrap();
+    assert_eq!(text.matches("<node id=").count(), n);
+    assert_eq!(text.matches("<edge ").count(), n - 1);
+}
+
+#[test]
+fn spacing_option_scales_the_physical_graph() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let json = dir.path().join("tube.json");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&json), "--spacing", "2", "1", "1", "-q"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let doc: Value = serde_json::from_reader(File::open(&json).unwrap()).unwrap();
+    assert_eq!(doc["spacing"], serde_json::json!([2.0, 1.0, 1.0]));
+    let positions: Vec<[f64; 3]> = serde_json::from_value(doc["positions"].clone()).unwrap();
+    let max0 = positions.iter().map(|p| p[0]).fold(f64::NEG_INFINITY, f64::max);
+    assert!(max0 > 45.0, "axis 0 is in physical units (2 per voxel): max {max0}");
+    assert!(positions.iter().all(|p| (p[1] - 10.0).abs() < 1.0 && (p[2] - 10.0).abs() < 1.0));
+}
+
+#[test]
+fn stderr_reports_stages_and_timings_unless_quiet() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let json = dir.path().join("tube.json");
+    let args = ["skeletonize", path_str(&input), "-o", path_str(&json)];
+
+    let out = vesselflow(&args);
+    assert_eq!(out.status.code(), Some(0));
+    let err = stderr(&out);
+    // Not a terminal: one line per stage, then the timings.
+    for stage in ["edt:", "grid:", "contract:", "refine:", "output:"] {
+        assert_eq!(err.lines().filter(|l| l.starts_with(stage)).count(), 1, "{stage} in {err}");
+    }
+    assert!(err.lines().any(|l| l.starts_with("total ")), "{err}");
+    assert!(err.contains("wrote") && !err.contains("cg iterations"), "{err}");
+    assert!(stdout(&out).is_empty());
+
+    let verbose = stderr(&vesselflow(&[&args[..], &["-v"]].concat()));
+    assert!(verbose.contains("cg iterations"), "{verbose}");
+    let iterations = serde_json::from_reader::<_, Value>(File::open(&json).unwrap()).unwrap()["info"]["iterations"]
+        .as_u64()
+        .unwrap();
+    let table_rows = verbose
+        .lines()
+        .skip_while(|l| !l.contains("cg iterations"))
+        .skip(1)
+        .take_while(|l| l.trim_start().starts_with(|c: char| c.is_ascii_digit()))
+        .count();
+    assert_eq!(table_rows as u64, iterations + 1, "one row per iteration plus the initial graph");
+
+    let quiet = vesselflow(&[&args[..], &["--quiet"]].concat());
+    assert_eq!(quiet.status.code(), Some(0));
+    assert!(stderr(&quiet).is_empty(), "{}", stderr(&quiet));
+}
+
+#[test]
+fn demo_prints_the_summary() {
+    let dir = TempDir::new().unwrap();
+    let output = dir.path().join("demo.graphml");
+    let out = vesselflow(&["demo", "-o", path_str(&output), "-q"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let text = stdout(&out);
+    let field = |name: &str| -> String {
+        let line = text.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("{name} missing in {text}"));
+        line[name.len()..].trim().to_string()
+    };
+    let count = |name: &str| field(name).parse::<usize>().unwrap();
+    let (nodes, edges, components, cycles) =
+        (count("nodes"), count("edges"), count("components"), count("independent cycles"));
+    assert!(count("foreground voxels") > nodes && nodes > 10);
+    assert_eq!(cycles + nodes, edges + components, "cycles = E - N + components");
+    // The built-in volume is one tree of tubes with one loop.
+    assert_eq!((components, cycles), (1, 1), "{text}");
+    assert!(count("junctions") >= 2 && count("endpoints") >= 2, "{text}");
+    assert!(field("iterations").contains("converged"));
+    assert!(field("seconds").parse::<f64>().unwrap() > 0.0);
+    assert_eq!(fs::read_to_string(&output).unwrap().matches("<node id=").count(), nodes);
+}
+
+#[test]
+fn embedded_entry_stops_when_asked_and_writes_nothing() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let output = dir.path().join("g.json");
+    let args = ["vesselflow", "skeletonize", path_str(&input), "-o", path_str(&output), "-q"];
+
+    // Asked before anything runs.
+    assert_eq!(vesselflow_cli::run_with(args, &mut || true), vesselflow_cli::EXIT_INTERRUPTED);
+    // Asked in the middle of the run: the third poll says stop.
+    let mut polls = 0;
+    let code = vesselflow_cli::run_with(args, &mut || {
+        polls += 1;
+        polls >= 3
+    });
+    assert_eq!(code, vesselflow_cli::EXIT_INTERRUPTED);
+    assert_eq!(polls, 3, "stops at the first poll that asks");
+    assert_eq!(files_in(dir.path()), ["tube.npy"]);
+    // Never asked: runs to completion.
+    assert_eq!(vesselflow_cli::run_with(args, &mut || false), 0);
+    assert!(output.exists());
+}
+
+#[cfg(unix)]
+#[test]
+fn sigint_stops_the_binary_with_130_and_no_output() {
+    use std::io::{BufRead, BufReader};
+    let dir = TempDir::new().unwrap();
+    // Long enough that the contraction is still running when the signal lands.
+    let input = dir.path().join("long.npy");
+    shapes::cylinder([600, 31, 31], 8.0).write_npy(File::create(&input).unwrap()).unwrap();
+    let output = dir.path().join("g.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vesselflow"))
+        .args(["skeletonize", path_str(&input), "-o", path_str(&output)])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    // The "edt:" line is printed when the grid stage reports, i.e. the run is under way.
+    for line in lines.by_ref() {
+        if line.unwrap().starts_with("edt:") {
+            break;
+        }
+    }
+    let kill = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(kill.success());
+    let rest: Vec<String> = lines.map(Result::unwrap).collect();
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(130), "{rest:?}");
+    assert!(rest.iter().any(|l| l == "vesselflow: error: interrupted; no output written"), "{rest:?}");
+    assert_eq!(files_in(dir.path()), ["long.npy"]);
+}

@@ -1,0 +1,33 @@
+//! # vesselflow-io
+//!
+//! The file layer shared by the `vesselflow` command-line program and the Python
+//! bindings: binary vessel masks in ([`read_volume`]: `.npy`, `.nii`, `.nii.gz`)
+//! and centreline graphs out ([`write_graph`]: `.graphml`, `.json`, `.npz`, in
+//! the `vesselflow-graph` format, version 1). Every failure is an [`IoError`]
+//! whose message names the file and the problem; nothing here panics on bad input,
+//! and no partial output file is ever left behind.
+//!
+//! ```no_run
+//! use std::path::Path;
+//! use vesselflow::{Params, Skeletonizer};
+//!
+//! let volume = vesselflow_io::read_volume(Path::new("mask.nii.gz"))?;
+//! let params = Params::default();
+//! let skel = Skeletonizer::new(params.clone())?
+//!     .run(volume.mask.view(), volume.spacing, &mut |_| true)?;
+//! vesselflow_io::write_graph(Path::new("graph.json"), &skel, &params)?;
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+mod error;
+mod graph;
+mod volume;
+
+pub use error::IoError;
+pub use graph::{
+    check_graph_output, params_json, run_info_json, write_graph, write_graph_arrays, GraphArrays, GraphFormat,
+    FORMAT_NAME, FORMAT_VERSION,
+};
+/// The JSON library of [`GraphArrays`]' metadata, so callers need no dependency of their own.
+pub use serde_json;
+pub use volume::{read_volume, read_volume_with_spacing, VolumeFile};

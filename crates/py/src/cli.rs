@@ -1,0 +1,27 @@
+//! `cli_main`: the `vesselflow` command line run inside Python, so that the wheel's
+//! console script is the same program as the Rust binary.
+
+use std::io::Write;
+
+use pyo3::exceptions::PyKeyboardInterrupt;
+use pyo3::prelude::*;
+
+/// Run the command line `argv` (program name first) and return its exit code. The GIL
+/// is released; Ctrl-C stops the run like in the binary (exit code 130). Any other
+/// exception raised by a Python signal handler propagates.
+#[pyfunction]
+pub fn cli_main(py: Python<'_>, argv: Vec<String>) -> PyResult<i32> {
+    let mut pending: Option<PyErr> = None;
+    let code = py.detach(|| {
+        let code = vesselflow_cli::run_with(argv, &mut || {
+            Python::attach(|py| py.check_signals().map_err(|e| pending = Some(e)).is_err())
+        });
+        // The host is Python, not a Rust `main`: nothing else flushes Rust's stdout.
+        let _ = std::io::stdout().flush();
+        code
+    });
+    match pending {
+        Some(err) if !err.is_instance_of::<PyKeyboardInterrupt>(py) => Err(err),
+        _ => Ok(code),
+    }
+}

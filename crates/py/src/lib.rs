@@ -1,0 +1,24 @@
+//! `vesselflow._core`: the Python extension of vesselflow.
+//!
+//! Conversion only: NumPy masks are borrowed and handed to the Rust core with the GIL
+//! released, results come back as NumPy arrays and dicts, and core errors become
+//! Python exceptions in one place ([`errors`]). The user-facing API is the
+//! `vesselflow` Python package, which wraps this module.
+
+mod cli;
+mod errors;
+mod graph_io;
+mod params;
+mod skeletonizer;
+
+use pyo3::prelude::*;
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<skeletonizer::PySkeletonizer>()?;
+    m.add_function(wrap_pyfunction!(params::param_defaults, m)?)?;
+    m.add_function(wrap_pyfunction!(graph_io::write_graph, m)?)?;
+    m.add_function(wrap_pyfunction!(cli::cli_main, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,191 @@
+//! `vesselflow._core.Skeletonizer`: keyword parameters in, NumPy mask borrowed without a
+//! copy, the core run with the GIL released, arrays and a run-record dict out.
+
+use ndarray::Array2;
+use numpy::prelude::*;
+use numpy::{Element, PyArray1, PyArray3, PyArrayDescr, PyUntypedArray};
+use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyTuple};
+use vesselflow::{Params, Progress, RunInfo, Skeleton, Voxel};
+
+use crate::errors;
+use crate::params::{value_from_py, value_to_py};
+
+/// The method with a fixed set of parameters (see `vesselflow.Skeletonizer`).
+#[pyclass(module = "vesselflow._core", name = "Skeletonizer", frozen)]
+pub struct PySkeletonizer {
+    inner: vesselflow::Skeletonizer,
+}
+
+#[pymethods]
+impl PySkeletonizer {
+    /// Check and keep the parameters; unknown names are a `TypeError`, bad values a
+    /// `ValueError` naming the parameter.
+    #[new]
+    #[pyo3(signature = (**params))]
+    fn new(params: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
+        let mut p = Params::default();
+        for (key, value) in params.into_iter().flatten() {
+            let name: String = key.extract()?;
+            p.set(&name, &value_from_py(&name, &value)?).map_err(errors::core)?;
+        }
+        let inner = vesselflow::Skeletonizer::new(p).map_err(errors::core)?;
+        Ok(Self { inner })
+    }
+
+    /// Every parameter and its value, in documentation order.
+    #[getter]
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let dict = PyDict::new(py);
+        for (name, v) in self.inner.params().values() {
+            dict.set_item(name, value_to_py(py, &v)?)?;
+        }
+        Ok(dict)
+    }
+
+    /// `Skeletonizer(name=value, ...)` with every parameter, values as Python literals.
+    fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
+        let args = self
+            .inner
+            .params()
+            .values()
+            .iter()
+            .map(|(name, v)| Ok(format!("{name}={}", value_to_py(py, v)?.repr()?)))
+            .collect::<PyResult<Vec<String>>>()?;
+        Ok(format!("Skeletonizer({})", args.join(", ")))
+    }
+
+    fn __eq__(&self, other: &Self) -> bool {
+        self.inner.params() == other.inner.params()
+    }
+
+    /// Skeletonize `mask` (3-D bool or integer array, non-zero = vessel) with voxel
+    /// `spacing`. Returns `(positions, radii, edges, info)`.
+    #[pyo3(
+        signature = (mask, spacing = vec![1.0, 1.0, 1.0], progress = None),
+        text_signature = "(self, mask, spacing=(1.0, 1.0, 1.0), progress=None)"
+    )]
+    fn run<'py>(
+        &self,
+        py: Python<'py>,
+        mask: &Bound<'py, PyAny>,
+        spacing: Vec<f64>,
+        progress: Option<Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let spacing: [f64; 3] = spacing.try_into().map_err(|s| errors::core(vesselflow::Error::InvalidSpacing(s)))?;
+        if let Some(cb) = &progress {
+            if !cb.is_callable() {
+                return Err(PyTypeError::new_err(format!(
+                    "progress must be callable or None, got {}",
+                    cb.get_type().name()?
+                )));
+            }
+        }
+        let progress = progress.map(Bound::unbind);
+        // The observer runs without the GIL held; it re-attaches to check for Ctrl-C
+        // and call the callback, and parks any exception for `errors::to_py`.
+        let mut pending: Option<PyErr> = None;
+        let mut observer = |p: &Progress| -> bool {
+            Python::attach(|py| {
+                let step = py.check_signals().and_then(|()| match &progress {
+                    Some(cb) => cb.call1(py, (p.stage, p.iteration, p.nodes, p.measure)).map(drop),
+                    None => Ok(()),
+                });
+                step.map_err(|e| pending = Some(e)).is_ok()
+            })
+        };
+        let skeleton = run_any(py, &self.inner, mask, spacing, &mut observer);
+        let skeleton = skeleton?.map_err(|e| errors::to_py(e, pending.take()))?;
+        skeleton_to_py(py, skeleton)
+    }
+}
+
+/// Check that `mask` is a 3-D bool or integer array and run on it with its own element
+/// type. The outer `PyResult` holds mask errors, the inner one the core's.
+fn run_any(
+    py: Python<'_>,
+    sk: &vesselflow::Skeletonizer,
+    mask: &Bound<'_, PyAny>,
+    spacing: [f64; 3],
+    observer: &mut (dyn FnMut(&Progress) -> bool + Send),
+) -> PyResult<vesselflow::Result<Skeleton>> {
+    let array = mask.cast::<PyUntypedArray>().map_err(|_| {
+        PyTypeError::new_err(format!(
+            "mask must be a numpy.ndarray, got {}",
+            mask.get_type().name().map_or_else(|_| "?".into(), |n| n.to_string())
+        ))
+    })?;
+    if array.ndim() != 3 {
+        return Err(PyValueError::new_err(format!("mask must be 3-D, got shape {:?}", array.shape())));
+    }
+    let dtype = array.dtype();
+    // Byte-swapped masks (read from big-endian files) are the one case that is copied.
+    if dtype.is_native_byteorder() == Some(false) {
+        let native = dtype.call_method1("newbyteorder", ("=",))?;
+        let swapped = array.call_method1("astype", (native,))?;
+        return run_any(py, sk, &swapped, spacing, observer);
+    }
+    match (dtype.kind(), dtype.itemsize()) {
+        // A NumPy bool byte may hold any value (`uint8_array.view(bool)`), which a Rust
+        // `bool` must not: read bool masks through a uint8 view (no copy).
+        (b'b', 1) => {
+            let bytes = array.call_method1("view", ("u1",))?;
+            run_typed::<u8>(py, sk, &bytes, spacing, observer)
+        }
+        (b'i', 1) => run_typed::<i8>(py, sk, mask, spacing, observer),
+        (b'i', 2) => run_typed::<i16>(py, sk, mask, spacing, observer),
+        (b'i', 4) => run_typed::<i32>(py, sk, mask, spacing, observer),
+        (b'i', 8) => run_typed::<i64>(py, sk, mask, spacing, observer),
+        (b'u', 1) => run_typed::<u8>(py, sk, mask, spacing, observer),
+        (b'u', 2) => run_typed::<u16>(py, sk, mask, spacing, observer),
+        (b'u', 4) => run_typed::<u32>(py, sk, mask, spacing, observer),
+        (b'u', 8) => run_typed::<u64>(py, sk, mask, spacing, observer),
+        _ => Err(unsupported_dtype(&dtype)),
+    }
+}
+
+fn unsupported_dtype(dtype: &Bound<'_, PyArrayDescr>) -> PyErr {
+    PyTypeError::new_err(format!(
+        "mask dtype {dtype} is not bool or integer: binarise it first, e.g. `mask > threshold`"
+    ))
+}
+
+/// Borrow the array read-only (any strides, no copy) and run with the GIL released.
+fn run_typed<T: Voxel + Element>(
+    py: Python<'_>,
+    sk: &vesselflow::Skeletonizer,
+    mask: &Bound<'_, PyAny>,
+    spacing: [f64; 3],
+    observer: &mut (dyn FnMut(&Progress) -> bool + Send),
+) -> PyResult<vesselflow::Result<Skeleton>> {
+    let array = mask.cast::<PyArray3<T>>().map_err(|_| PyRuntimeError::new_err("mask dtype dispatch failed"))?;
+    let readonly = array.try_readonly().map_err(|e| PyValueError::new_err(format!("mask cannot be read: {e}")))?;
+    let view = readonly.as_array();
+    Ok(py.detach(|| sk.run(view, spacing, observer)))
+}
+
+/// `(positions (N, 3) float64, radii (N,) float64, edges (E, 2) int64, info dict)`.
+fn skeleton_to_py(py: Python<'_>, sk: Skeleton) -> PyResult<Bound<'_, PyTuple>> {
+    let shape_err = |e: ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
+    let n = sk.positions.len();
+    let positions = Array2::from_shape_vec((n, 3), sk.positions.as_flattened().to_vec()).map_err(shape_err)?;
+    let edge_ids = sk.edges.as_flattened().iter().map(|&i| i as i64).collect();
+    let edges = Array2::from_shape_vec((sk.edges.len(), 2), edge_ids).map_err(shape_err)?;
+    PyTuple::new(
+        py,
+        [
+            positions.into_pyarray(py).into_any(),
+            PyArray1::from_vec(py, sk.radii).into_any(),
+            edges.into_pyarray(py).into_any(),
+            info_to_py(py, &sk.info)?.into_any(),
+        ],
+    )
+}
+
+/// The run record as a dict, through the io crate's JSON form so that the dict and
+/// the graph files agree field for field.
+fn info_to_py<'py>(py: Python<'py>, info: &RunInfo) -> PyResult<Bound<'py, PyAny>> {
+    let text = vesselflow_io::run_info_json(info).to_string();
+    py.import("json")?.call_method1("loads", (text,))
+}

@@ -1,0 +1,46 @@
+"""The Rust extension of vesselflow (private: use the ``vesselflow`` package)."""
+
+import os
+from collections.abc import Callable, Sequence
+from typing import Any, final
+
+import numpy as np
+from numpy.typing import NDArray
+
+_ParamValue = bool | int | float | str
+
+__version__: str
+__all__ = ["Skeletonizer", "__version__", "cli_main", "param_defaults", "write_graph"]
+
+@final
+class Skeletonizer:
+    """The method with a fixed set of parameters (see ``vesselflow.Skeletonizer``)."""
+
+    def __new__(cls, **params: _ParamValue) -> Skeletonizer: ...
+    @property
+    def params(self) -> dict[str, _ParamValue]: ...
+    def __eq__(self, value: object, /) -> bool: ...
+    def run(
+        self,
+        mask: NDArray[Any],
+        spacing: Sequence[float] = (1.0, 1.0, 1.0),
+        progress: Callable[[str, int, int, float], object] | None = None,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], dict[str, Any]]:
+        """Returns ``(positions (N, 3), radii (N,), edges (E, 2) int64, info)``."""
+
+def param_defaults() -> list[tuple[str, _ParamValue]]:
+    """Every parameter with its default, in documentation order."""
+
+def write_graph(
+    path: str | os.PathLike[str],
+    positions: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    edges: NDArray[np.int64],
+    spacing: Sequence[float] | NDArray[np.float64],
+    info_json: str,
+    params_json: str,
+) -> None:
+    """Write a graph atomically; the extension of ``path`` picks the format."""
+
+def cli_main(argv: list[str]) -> int:
+    """Run the ``vesselflow`` command line with ``argv`` (``argv[0]`` is the program name)."""
