@@ -216,9 +216,9 @@ fn stages(cr: &mut Criterion) {
         });
         let edt = volume::edt_squared(mask.view(), SPACING);
         group.bench_with_input(BenchmarkId::new("grid", n), mask, |b, m| {
-            b.iter(|| grid::build(m.view(), &edt, SPACING, [0; 3], &p))
+            b.iter(|| grid::build(m.view(), &edt, SPACING, &p))
         });
-        let grid = grid::build(mask.view(), &edt, SPACING, [0; 3], &p);
+        let grid = grid::build(mask.view(), &edt, SPACING, &p);
         let g =
             NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
         group.bench_with_input(BenchmarkId::new("contract", n), &g, |b, g| b.iter(|| contract_once(g, &p)));

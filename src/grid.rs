@@ -108,7 +108,7 @@ pub fn for_row_blocks<T: Send>(offsets: &[usize], data: &mut [T], f: impl Fn(std
 #[derive(Debug, Clone, Default)]
 pub struct GridGraph {
     pub graph: Csr,
-    /// Voxel centre of every node, physical units, `(index + offset) * spacing`.
+    /// Voxel centre of every node, physical units, `index * spacing`.
     pub positions: Vec<[f64; 3]>,
     /// EDT at every node, physical units (distance to the nearest background centre).
     pub radii: Vec<f64>,
@@ -200,13 +200,7 @@ fn offsets(max_sq: isize) -> Vec<[isize; 3]> {
 /// is applied symmetrically. Finally, voxels that touch only by an edge or a corner
 /// still unjoined get one bridging edge per pair of graph pieces, so that each
 /// 26-connected mask component is exactly one graph component.
-pub fn build<T: Voxel>(
-    mask: ArrayView3<'_, T>,
-    edt_sq: &[f32],
-    spacing: [f64; 3],
-    offset: [i64; 3],
-    params: &Params,
-) -> GridGraph {
+pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3], params: &Params) -> GridGraph {
     let rows = Rows::new(mask);
     let n = rows.len();
     let [_, n1, n2] = rows.shape;
@@ -291,7 +285,7 @@ pub fn build<T: Voxel>(
         .enumerate()
         .map(|(node, &(r, _))| {
             let v = rows.voxel(r, node);
-            std::array::from_fn(|d| (v[d] as i64 + offset[d]) as f64 * spacing[d])
+            std::array::from_fn(|d| v[d] as f64 * spacing[d])
         })
         .collect();
     let radii = node_rows
@@ -312,7 +306,7 @@ mod tests {
 
     fn grid(mask: &Array3<u8>, params: &Params) -> GridGraph {
         let e = crate::volume::edt_squared(mask.view(), [1.0; 3]);
-        build(mask.view(), &e, [1.0; 3], [0; 3], params)
+        build(mask.view(), &e, [1.0; 3], params)
     }
 
     #[test]

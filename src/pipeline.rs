@@ -94,7 +94,11 @@ impl Skeletonizer {
     }
 
     /// [`Skeletonizer::run`] on a block of a larger volume whose voxel `(0, 0, 0)` is
-    /// voxel `offset` of the whole: positions and cells are global, so blocks agree.
+    /// voxel `offset` of the whole. The block is processed in its own coordinates and
+    /// its positions are shifted by `offset * spacing` at the end, so the graph is the
+    /// same, bit for bit, wherever the block sits; when block origins are whole base
+    /// cells apart (`offset * spacing / c` integer, e.g. isotropic grids), the block's
+    /// cells are those of the global cell grid, so blocks can be merged by cell.
     pub fn run_block<T: Voxel>(
         &self,
         mask: ArrayView3<'_, T>,
@@ -106,11 +110,10 @@ impl Skeletonizer {
         let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
         let (n0, n1, n2) = mask.dim();
         for (d, n) in [n0, n1, n2].into_iter().enumerate() {
-            let far = (offset[d].unsigned_abs() as f64 + n as f64) * spacing[d] / c;
+            let far = n as f64 * spacing[d] / c;
             if far >= (CELL_LIMIT - 2) as f64 {
                 return Err(Error::InvalidMask(format!(
-                    "axis {d} spans {far:.0} base cells (offset {}, size {n}, spacing {}); at most {} are supported",
-                    offset[d],
+                    "axis {d} spans {far:.0} base cells (size {n}, spacing {}); at most {} are supported",
                     spacing[d],
                     CELL_LIMIT - 2
                 )));
@@ -126,7 +129,7 @@ impl Skeletonizer {
 
         let edt = clock.time("edt", || pool.install(|| edt_squared(mask, spacing)));
         report(observer, "edt", 0, 0, 0.0)?;
-        let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, offset, p)));
+        let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, p)));
         drop(edt);
         let n = grid.positions.len();
         info.foreground_voxels = n;
@@ -214,7 +217,11 @@ impl Skeletonizer {
             Skeleton {
                 radii: g.radii.iter().map(|r| (r - shift).max(0.0)).collect(),
                 edges: g.graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
-                positions: std::mem::take(&mut g.positions),
+                positions: g
+                    .positions
+                    .iter()
+                    .map(|q| std::array::from_fn(|d| q[d] + offset[d] as f64 * spacing[d]))
+                    .collect(),
                 spacing,
                 info: RunInfo::default(),
             }

@@ -275,3 +275,20 @@ fn a_long_thick_tube_contracts_to_a_path() {
     assert!(s.degrees().iter().all(|&d| d <= 2), "not a path");
     assert!(s.len() < 2000, "{} nodes for a 1500-voxel tube", s.len());
 }
+
+#[test]
+fn a_block_with_a_global_offset_gives_the_same_graph_shifted() {
+    // A block of a larger volume gives the same graph wherever it sits, shifted by
+    // offset * spacing.
+    let (mask, _) = shapes::y_bifurcation([9, 40, 40], 2.5);
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    let spacing = [1.0, 0.5, 0.5];
+    let a = sk.run(mask.view(), spacing, &mut |_| true).unwrap();
+    let b = sk.run_block(mask.view(), [10, -4, 6], spacing, &mut |_| true).unwrap();
+    assert_eq!(a.edges, b.edges);
+    assert_eq!(a.radii, b.radii);
+    for (p, q) in a.positions.iter().zip(&b.positions) {
+        let shift = [10.0, -2.0, 3.0];
+        assert!((0..3).all(|d| q[d] == p[d] + shift[d]), "{p:?} vs {q:?}");
+    }
+}
