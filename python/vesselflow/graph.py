@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -14,6 +15,9 @@ from vesselflow import _core
 
 if TYPE_CHECKING:
     import networkx as nx
+    import pandas as pd
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 
 class VesselGraph:
@@ -96,9 +100,20 @@ class VesselGraph:
         return graph
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the graph to ``path``; the extension picks the format: ``.npz``,
-        ``.json`` or ``.graphml``. The file is written atomically (a temporary file in
-        the same folder, then renamed), by the same code as the ``vesselflow`` binary."""
+        """Write the graph to ``path``; the extension picks the format.
+
+        ``.npz``, ``.json`` and ``.graphml`` are written by the same code as the
+        ``vesselflow`` binary; ``.swc`` (a forest, loops listed in ``# loop-edge`` header
+        lines), ``.vtp`` (VTK PolyData with a ``radius`` point array; needs the ``io``
+        extra) and ``.csv`` (nodes table ``graph.csv`` plus edges table
+        ``graph.edges.csv``) by :mod:`vesselflow.io`. Every file is written atomically
+        (a temporary file in the same folder, then renamed)."""
+        from vesselflow.io import WRITERS, graph_extension
+
+        write = WRITERS.get(graph_extension(path))
+        if write is not None:
+            write(self, Path(path))
+            return
         _core.write_graph(
             os.fspath(path),
             np.ascontiguousarray(self.positions, dtype=np.float64),
@@ -117,6 +132,43 @@ class VesselGraph:
             f"VesselGraph(n_nodes={self.n_nodes}, n_edges={self.n_edges}, "
             f"spacing=({spacing}){tail})"
         )
+
+    def branches(self) -> pd.DataFrame:
+        """The branch table, one row per branch between junctions and endpoints, with
+        lengths, tortuosity, radius statistics, volume and surface area in physical units
+        (skan-compatible column names): see :func:`vesselflow.analysis.branches`."""
+        from vesselflow.analysis import branches
+
+        return branches(self)
+
+    def junctions(self) -> pd.DataFrame:
+        """One row per node of degree >= 3: position, radius, degree and the angles (degrees)
+        between its branches: see :func:`vesselflow.analysis.junctions`."""
+        from vesselflow.analysis import junctions
+
+        return junctions(self)
+
+    def prune(self, min_length_over_radius: float = 2.0) -> VesselGraph:
+        """A new graph without terminal spurs shorter than ``min_length_over_radius`` times
+        the radius where they join, removed iteratively; components and loops are kept:
+        see :func:`vesselflow.analysis.prune`."""
+        from vesselflow.analysis import prune
+
+        return prune(self, min_length_over_radius)
+
+    def plot(
+        self,
+        mask: ArrayLike | None = None,
+        path: str | os.PathLike[str] | None = None,
+        axis: int = 0,
+        ax: Axes | None = None,
+    ) -> Figure:
+        """Maximum-intensity projection of ``mask`` along ``axis`` with the edges drawn on
+        top, coloured by radius; saved as PNG (atomically) when ``path`` is given. Needs
+        matplotlib (``pip install 'vesselflow[viz]'``): see :func:`vesselflow.plot.plot`."""
+        from vesselflow.plot import plot
+
+        return plot(self, mask=mask, path=path, axis=axis, ax=ax)
 
 
 def _json_default(obj: object) -> Any:

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import logging
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, Literal
 
 import numpy as np
 
 from vesselflow import _core
 from vesselflow.graph import VesselGraph
+
+logger = logging.getLogger(__name__)
+"""Messages go to the ``vesselflow`` logger hierarchy (no prints)."""
 
 ProgressCallback = Callable[[str, int, int, float], object]
 """``progress(stage, iteration, nodes, measure)``, called after every stage and iteration."""
@@ -122,7 +127,9 @@ class Skeletonizer:
         self,
         mask: np.ndarray,
         spacing: Sequence[float] = (1.0, 1.0, 1.0),
-        progress: ProgressCallback | None = None,
+        progress: ProgressCallback | bool | None = None,
+        *,
+        prune_min_length_over_radius: float | None = None,
     ) -> VesselGraph:
         """Skeletonize one mask.
 
@@ -134,14 +141,31 @@ class Skeletonizer:
         spacing : sequence of 3 floats
             Voxel size along axes 0, 1, 2 in physical units; positions and radii of
             the result are in the same units.
-        progress : callable, optional
+        progress : callable or bool, optional
+            ``True`` shows a tqdm bar on stderr (contraction iterations out of
+            ``max_iterations``, with the stage, nodes left and the convergence
+            measure, which reaches 1 when the run stops). A callable is called as
             ``progress(stage, iteration, nodes, measure)`` after every stage and
             iteration; an exception it raises stops the run and propagates.
+        prune_min_length_over_radius : float, optional
+            If given, finish with :meth:`VesselGraph.prune` at this ratio: terminal
+            spurs shorter than this many radii of the vessel they join are removed.
+            Default ``None``: no pruning.
 
         The GIL is released while the core runs; Ctrl-C raises ``KeyboardInterrupt``.
+        A run that stops at ``max_iterations`` before converging logs a warning on
+        the ``vesselflow`` logger.
         """
-        positions, radii, edges, info = self._core.run(mask, spacing, progress)
-        return VesselGraph(
+        with _progress_callback(progress, int(self.params["max_iterations"])) as callback:
+            positions, radii, edges, info = self._core.run(mask, spacing, callback)
+        if not info["converged"]:
+            logger.warning(
+                "contraction stopped at max_iterations=%d before converging "
+                "(info['converged'] is False; see info['area_per_iteration']): "
+                "raise max_iterations or lower gamma",
+                info["iterations"],
+            )
+        graph = VesselGraph(
             positions=positions,
             radii=radii,
             edges=edges,
@@ -149,18 +173,53 @@ class Skeletonizer:
             info=info,
             params=self.params,
         )
+        if prune_min_length_over_radius is not None:
+            graph = graph.prune(prune_min_length_over_radius)
+        logger.info(
+            "skeletonized %d voxels into %d nodes and %d edges in %d iterations",
+            info["foreground_voxels"],
+            graph.n_nodes,
+            graph.n_edges,
+            info["iterations"],
+        )
+        return graph
+
+
+@contextmanager
+def _progress_callback(
+    progress: ProgressCallback | bool | None, max_iterations: int
+) -> Iterator[ProgressCallback | None]:
+    """The core's callback for ``progress``: ``True`` drives a tqdm bar, closed on exit."""
+    if progress is not True:
+        yield progress or None
+        return
+    from tqdm.auto import tqdm
+
+    with tqdm(total=max_iterations, unit="it", desc="vesselflow") as bar:
+
+        def update(stage: str, iteration: int, nodes: int, measure: float) -> None:
+            if stage == "contract":
+                bar.update(iteration - bar.n)
+            elif stage == "output":  # converged early: show the bar as complete
+                bar.total = bar.n
+            bar.set_postfix(stage=stage, nodes=nodes, measure=f"{measure:.3g}")
+
+        yield update
 
 
 def skeletonize(
     mask: np.ndarray,
     spacing: Sequence[float] = (1.0, 1.0, 1.0),
     *,
-    progress: ProgressCallback | None = None,
+    progress: ProgressCallback | bool | None = None,
+    prune_min_length_over_radius: float | None = None,
     **params: Any,
 ) -> VesselGraph:
     """Skeletonize ``mask`` in one call: ``Skeletonizer(**params).run(mask, spacing)``.
 
     See :class:`Skeletonizer` for the parameters and :meth:`Skeletonizer.run` for
-    ``mask``, ``spacing`` and ``progress``.
+    ``mask``, ``spacing``, ``progress`` and ``prune_min_length_over_radius``.
     """
-    return Skeletonizer(**params).run(mask, spacing, progress)
+    return Skeletonizer(**params).run(
+        mask, spacing, progress, prune_min_length_over_radius=prune_min_length_over_radius
+    )

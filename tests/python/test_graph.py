@@ -142,8 +142,10 @@ def test_save_with_numpy_values_in_info(graph, tmp_path):
 
 
 def test_save_unknown_extension_is_a_value_error_and_writes_nothing(graph, tmp_path):
-    with pytest.raises(ValueError, match=r"\.graphml, \.json or \.npz"):
-        graph.save(tmp_path / "vessels.swc")
+    with pytest.raises(
+        ValueError, match=r"vessels\.xyz.*\.csv, \.graphml, \.json, \.npz, \.swc, \.vtp"
+    ):
+        graph.save(tmp_path / "vessels.xyz")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -181,9 +183,9 @@ def test_save_invalid_graph_is_a_value_error(tmp_path):
 
 
 def test_load_unknown_extension_lists_the_supported_ones(tmp_path):
-    path = tmp_path / "g.swc"
+    path = tmp_path / "g.xyz"
     path.write_text("1 2 3")
-    with pytest.raises(ValueError, match=r"g\.swc.*\.graphml, \.json, \.npz"):
+    with pytest.raises(ValueError, match=r"g\.xyz.*\.graphml, \.json, \.npz"):
         load_graph(path)
 
 

@@ -17,6 +17,7 @@ def test_public_names():
         "VesselGraph",
         "__version__",
         "load_graph",
+        "load_volume",
         "skeletonize",
     }
     assert vesselflow.__version__.count(".") == 2

@@ -81,13 +81,13 @@ fn output_arg(required: bool) -> Arg {
 /// The whole command-line interface.
 pub(crate) fn command() -> Command {
     let skeletonize = Command::new("skeletonize")
-        .about("Turn a binary vessel mask (.npy, .nii, .nii.gz; non-zero = vessel) into a centreline graph")
+        .about("Turn a binary vessel mask (.npy, .nii, .nii.gz, .tif; non-zero = vessel) into a centreline graph")
         .arg(
             Arg::new("input")
                 .value_name("INPUT")
                 .required(true)
                 .value_parser(value_parser!(PathBuf))
-                .help("Mask file: .npy (bool or integer) or NIfTI .nii/.nii.gz (spacing from its header)"),
+                .help("Mask file: .npy (bool or integer), NIfTI .nii/.nii.gz (spacing from its header) or a TIFF stack .tif/.tiff (ImageJ spacing)"),
         )
         .arg(output_arg(true))
         .arg(

@@ -156,12 +156,12 @@ fn unsupported_extensions_are_usage_errors() {
     let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&dir.path().join("g.csv"))]);
     assert_error(&out, 2, "g.csv");
     assert!(stderr(&out).contains(".graphml, .json or .npz"));
-    let tif = dir.path().join("mask.tif");
-    fs::write(&tif, b"II*\0").unwrap();
-    let out = vesselflow(&["skeletonize", path_str(&tif), "-o", path_str(&dir.path().join("g.json"))]);
-    assert_error(&out, 2, "mask.tif");
+    let mha = dir.path().join("mask.mha");
+    fs::write(&mha, b"ObjectType = Image\n").unwrap();
+    let out = vesselflow(&["skeletonize", path_str(&mha), "-o", path_str(&dir.path().join("g.json"))]);
+    assert_error(&out, 2, "mask.mha");
     assert!(stderr(&out).contains("vesselflow.load_volume"));
-    assert_eq!(files_in(dir.path()), ["mask.tif", "tube.npy"]);
+    assert_eq!(files_in(dir.path()), ["mask.mha", "tube.npy"]);
 }
 
 #[test]

@@ -14,8 +14,8 @@ pub enum IoError {
     Corrupt { path: PathBuf, format: &'static str, reason: String },
     /// The volume's extension is none of the readable ones.
     #[error(
-        "cannot read {path}: unsupported volume format (this program reads .npy, .nii and \
-         .nii.gz; the Python package's vesselflow.load_volume reads more formats)",
+        "cannot read {path}: unsupported volume format (this program reads .npy, .nii, \
+         .nii.gz, .tif and .tiff; the Python package's vesselflow.load_volume reads more formats)",
         path = .path.display()
     )]
     UnsupportedVolume { path: PathBuf },

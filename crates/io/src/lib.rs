@@ -1,7 +1,7 @@
 //! # vesselflow-io
 //!
 //! The file layer shared by the `vesselflow` command-line program and the Python
-//! bindings: binary vessel masks in ([`read_volume`]: `.npy`, `.nii`, `.nii.gz`)
+//! bindings: binary vessel masks in ([`read_volume`]: `.npy`, `.nii`, `.nii.gz`, `.tif`)
 //! and centreline graphs out ([`write_graph`]: `.graphml`, `.json`, `.npz`, in
 //! the `vesselflow-graph` format, version 1). Every failure is an [`IoError`]
 //! whose message names the file and the problem; nothing here panics on bad input,

@@ -1,4 +1,5 @@
-//! Volume readers: `.npy` and NIfTI (`.nii`, `.nii.gz`) files to a binary mask.
+//! Volume readers: `.npy`, NIfTI (`.nii`, `.nii.gz`) and TIFF stack (`.tif`, `.tiff`)
+//! files to a binary mask.
 //!
 //! A mask is "non-zero = vessel". Integer and bool data are binarised as such;
 //! floating-point data are refused (they are usually an intensity or probability
@@ -13,6 +14,9 @@ use num_traits::{AsPrimitive, ToPrimitive};
 use std::fs::File;
 use std::io::{BufReader, Read, Seek};
 use std::path::Path;
+use tiff::decoder::{Decoder, DecodingResult, Limits};
+use tiff::tags::Tag;
+use tiff::ColorType;
 
 /// A mask read from a file, with the voxel spacing the file declares.
 #[derive(Debug, Clone, PartialEq)]
@@ -30,6 +34,7 @@ pub struct VolumeFile {
 enum VolumeFormat {
     Npy,
     Nifti,
+    Tiff,
 }
 
 fn volume_format(path: &Path) -> Option<VolumeFormat> {
@@ -38,6 +43,8 @@ fn volume_format(path: &Path) -> Option<VolumeFormat> {
         Some(VolumeFormat::Npy)
     } else if name.ends_with(".nii") || name.ends_with(".nii.gz") {
         Some(VolumeFormat::Nifti)
+    } else if name.ends_with(".tif") || name.ends_with(".tiff") {
+        Some(VolumeFormat::Tiff)
     } else {
         None
     }
@@ -69,6 +76,7 @@ fn read(path: &Path, spacing: Option<[f64; 3]>) -> Result<VolumeFile, IoError> {
             Ok(VolumeFile { mask, spacing: spacing.unwrap_or([1.0; 3]) })
         }
         Some(VolumeFormat::Nifti) => read_nifti(path, spacing),
+        Some(VolumeFormat::Tiff) => read_tiff(path, spacing),
         None => Err(IoError::UnsupportedVolume { path: path.to_path_buf() }),
     }
 }
@@ -356,4 +364,100 @@ impl RawVoxels<'_> {
         }
         Ok(out)
     }
+}
+
+/// Binarise one TIFF page: integers non-zero; floats only if every value is 0 or 1.
+fn tiff_page_mask(path: &Path, page: DecodingResult, out: &mut Vec<u8>) -> Result<(), IoError> {
+    fn ints<T: Copy + PartialEq + Default>(v: Vec<T>, out: &mut Vec<u8>) {
+        out.extend(v.into_iter().map(|x| u8::from(x != T::default())));
+    }
+    fn floats(path: &Path, v: impl Iterator<Item = f64>, out: &mut Vec<u8>) -> Result<(), IoError> {
+        for x in v {
+            if x != 0.0 && x != 1.0 {
+                return Err(IoError::NotAMask {
+                    path: path.to_path_buf(),
+                    reason: format!(
+                        "floating-point TIFF with value {x}: threshold it first \
+                         (vesselflow.load_volume(path, threshold=...))"
+                    ),
+                });
+            }
+            out.push(u8::from(x == 1.0));
+        }
+        Ok(())
+    }
+    match page {
+        DecodingResult::U8(v) => ints(v, out),
+        DecodingResult::U16(v) => ints(v, out),
+        DecodingResult::U32(v) => ints(v, out),
+        DecodingResult::U64(v) => ints(v, out),
+        DecodingResult::I8(v) => ints(v, out),
+        DecodingResult::I16(v) => ints(v, out),
+        DecodingResult::I32(v) => ints(v, out),
+        DecodingResult::I64(v) => ints(v, out),
+        DecodingResult::F32(v) => floats(path, v.into_iter().map(f64::from), out)?,
+        DecodingResult::F64(v) => floats(path, v.into_iter(), out)?,
+        DecodingResult::F16(v) => floats(path, v.into_iter().map(f64::from), out)?,
+    }
+    Ok(())
+}
+
+/// Pixel size from a TIFF resolution tag (pixels per unit), if present and sane.
+fn tiff_pixel_size(decoder: &mut Decoder<BufReader<File>>, tag: Tag) -> Option<f64> {
+    match decoder.find_tag(tag).ok()?? {
+        tiff::decoder::ifd::Value::Rational(n, d) if n > 0 && d > 0 => Some(d as f64 / n as f64),
+        _ => None,
+    }
+}
+
+/// A multi-page greyscale TIFF stack as axes (page, row, column). Spacing follows
+/// ImageJ's convention: `spacing=` in the image description for axis 0 and the
+/// X/Y resolution tags (pixels per unit) for axes 2 and 1, only in ImageJ files;
+/// otherwise 1. (OME-TIFF spacing: `vesselflow.load_volume` in Python.)
+fn read_tiff(path: &Path, spacing: Option<[f64; 3]>) -> Result<VolumeFile, IoError> {
+    let bad = |e: tiff::TiffError| corrupt(path, "TIFF", e);
+    let file = File::open(path).map_err(read_error(path))?;
+    let mut decoder = Decoder::new(BufReader::new(file)).map_err(bad)?.with_limits(Limits::unlimited());
+    let (width, height) = decoder.dimensions().map_err(bad)?;
+    let description = decoder.get_tag_ascii_string(Tag::ImageDescription).unwrap_or_default();
+    let imagej = description.starts_with("ImageJ=");
+    let mut file_spacing = [1.0; 3];
+    if imagej {
+        let z = description.lines().find_map(|l| l.strip_prefix("spacing=")?.trim().parse::<f64>().ok());
+        file_spacing = [
+            z.unwrap_or(1.0),
+            tiff_pixel_size(&mut decoder, Tag::YResolution).unwrap_or(1.0),
+            tiff_pixel_size(&mut decoder, Tag::XResolution).unwrap_or(1.0),
+        ];
+    }
+    let mut data = Vec::new();
+    let mut pages = 0usize;
+    loop {
+        if decoder.dimensions().map_err(bad)? != (width, height) {
+            return Err(corrupt(path, "TIFF", format!("page {pages} is not {width} x {height} like page 0")));
+        }
+        match decoder.colortype().map_err(bad)? {
+            ColorType::Gray(_) => {}
+            other => {
+                return Err(IoError::NotAMask {
+                    path: path.to_path_buf(),
+                    reason: format!("TIFF page {pages} is {other:?}, not a greyscale mask"),
+                })
+            }
+        }
+        tiff_page_mask(path, decoder.read_image().map_err(bad)?, &mut data)?;
+        pages += 1;
+        if !decoder.more_images() {
+            break;
+        }
+        decoder.next_image().map_err(bad)?;
+    }
+    let shape = (pages, height as usize, width as usize);
+    let mask = Array3::from_shape_vec(shape, data).map_err(|e| corrupt(path, "TIFF", e))?;
+    let spacing = match spacing {
+        Some(s) => s,
+        None if file_spacing.iter().all(|s| s.is_finite() && *s > 0.0) => file_spacing,
+        None => return Err(corrupt(path, "TIFF", format!("ImageJ spacing {file_spacing:?} is not positive"))),
+    };
+    Ok(VolumeFile { mask, spacing })
 }

@@ -210,10 +210,10 @@ fn missing_file_and_unsupported_extension() {
         let msg = error_text(read_volume(&path));
         assert!(msg.contains(name) && msg.contains("cannot read"), "{msg}");
     }
-    let path = dir.path().join("mask.tif");
-    fs::write(&path, b"II*\0").unwrap();
+    let path = dir.path().join("mask.mha");
+    fs::write(&path, b"ObjectType = Image\n").unwrap();
     let msg = error_text(read_volume(&path));
-    assert!(msg.contains("mask.tif") && msg.contains(".npy") && msg.contains(".nii.gz"), "{msg}");
+    assert!(msg.contains("mask.mha") && msg.contains(".npy") && msg.contains(".nii.gz"), "{msg}");
     assert!(msg.contains("vesselflow.load_volume"), "{msg}");
 }
 
@@ -353,4 +353,64 @@ fn nifti_unsupported_datatype_is_refused() {
     nifti::writer::WriterOptions::new(&path).reference_header(&header).write_rgb_nifti(&rgb).unwrap();
     let msg = error_text(read_volume(&path));
     assert!(msg.contains("rgb.nii") && msg.contains("Rgb24"), "{msg}");
+}
+
+/// Write a multi-page greyscale TIFF, optionally with ImageJ metadata.
+fn write_tiff<C>(path: &Path, pages: &[Vec<C::Inner>], width: u32, height: u32, imagej: Option<(&str, u32)>)
+where
+    C: tiff::encoder::colortype::ColorType,
+    [C::Inner]: tiff::encoder::TiffValue,
+{
+    let mut enc = tiff::encoder::TiffEncoder::new(fs::File::create(path).unwrap()).unwrap();
+    for page in pages {
+        let mut img = enc.new_image::<C>(width, height).unwrap();
+        if let Some((description, pixels_per_unit)) = imagej {
+            img.encoder().write_tag(tiff::tags::Tag::ImageDescription, description).unwrap();
+            img.resolution(tiff::tags::ResolutionUnit::None, tiff::encoder::Rational { n: pixels_per_unit, d: 1 });
+        }
+        img.write_data(page).unwrap();
+    }
+}
+
+#[test]
+fn tiff_stacks_read_as_page_row_column_with_imagej_spacing() {
+    let dir = TempDir::new().unwrap();
+    let path = dir.path().join("stack.tif");
+    // 3 pages of 4 rows x 5 columns; voxel (p, r, c) set where (p + r + c) % 3 == 0.
+    let page =
+        |p: usize| (0..20).map(|i| if (p + i / 5 + i % 5).is_multiple_of(3) { 255u16 } else { 0 }).collect::<Vec<_>>();
+    let pages: Vec<Vec<u16>> = (0..3).map(page).collect();
+    write_tiff::<tiff::encoder::colortype::Gray16>(
+        &path,
+        &pages,
+        5,
+        4,
+        Some(("ImageJ=1.53\nimages=3\nslices=3\nspacing=2.5\nunit=micron\n", 4)),
+    );
+    let v = read_volume(&path).unwrap();
+    assert_eq!(v.mask.dim(), (3, 4, 5));
+    for ((p, r, c), &x) in v.mask.indexed_iter() {
+        assert_eq!(x, u8::from((p + r + c).is_multiple_of(3)), "voxel {p} {r} {c}");
+    }
+    assert_eq!(v.spacing, [2.5, 0.25, 0.25]);
+    // Without ImageJ metadata the spacing is 1.
+    let plain = dir.path().join("plain.tiff");
+    write_tiff::<tiff::encoder::colortype::Gray8>(&plain, &[vec![0u8, 1, 0, 1]], 2, 2, None);
+    let v = read_volume(&plain).unwrap();
+    assert_eq!((v.mask.dim(), v.spacing), ((1, 2, 2), [1.0; 3]));
+}
+
+#[test]
+fn tiff_intensity_and_truncated_files_are_refused() {
+    let dir = TempDir::new().unwrap();
+    let path = dir.path().join("float.tif");
+    write_tiff::<tiff::encoder::colortype::Gray32Float>(&path, &[vec![0.0f32, 0.4, 1.0, 0.0]], 2, 2, None);
+    let msg = error_text(read_volume(&path));
+    assert!(msg.contains("float.tif") && msg.contains("threshold"), "{msg}");
+    let path = dir.path().join("cut.tif");
+    write_tiff::<tiff::encoder::colortype::Gray8>(&path, &[vec![1u8; 64 * 64]], 64, 64, None);
+    let bytes = fs::read(&path).unwrap();
+    fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let msg = error_text(read_volume(&path));
+    assert!(msg.contains("cut.tif"), "{msg}");
 }
