@@ -27,8 +27,8 @@ pub(crate) enum Verbosity {
 /// What the command line asks for.
 #[derive(Debug)]
 pub(crate) enum Task {
-    Skeletonize { input: PathBuf, output: PathBuf, spacing: Option<[f64; 3]>, params: Params },
-    Demo { output: Option<PathBuf>, params: Params },
+    Skeletonize { input: PathBuf, output: PathBuf, spacing: Option<[f64; 3]>, plot: Option<PathBuf>, params: Params },
+    Demo { output: Option<PathBuf>, plot: Option<PathBuf>, params: Params },
 }
 
 /// The parsed command line, or what to do instead of running.
@@ -78,6 +78,13 @@ fn output_arg(required: bool) -> Arg {
         .help("Graph file to write: .graphml, .json or .npz (written atomically)")
 }
 
+fn plot_arg() -> Arg {
+    Arg::new("plot").long("plot").value_name("PATH.png").value_parser(value_parser!(PathBuf)).help(
+        "Also write a picture: the mask projected along axis 0 with the graph's edges coloured by radius \
+             (viridis, colour bar at the right; its radius range is printed on stderr)",
+    )
+}
+
 /// The whole command-line interface.
 pub(crate) fn command() -> Command {
     let skeletonize = Command::new("skeletonize")
@@ -90,6 +97,7 @@ pub(crate) fn command() -> Command {
                 .help("Mask file: .npy (bool or integer), NIfTI .nii/.nii.gz (spacing from its header) or a TIFF stack .tif/.tiff (ImageJ spacing)"),
         )
         .arg(output_arg(true))
+        .arg(plot_arg())
         .arg(
             Arg::new("spacing")
                 .long("spacing")
@@ -101,7 +109,8 @@ pub(crate) fn command() -> Command {
         );
     let demo = Command::new("demo")
         .about("Run on the built-in synthetic volume (branching tubes with a loop) and print a summary")
-        .arg(output_arg(false));
+        .arg(output_arg(false))
+        .arg(plot_arg());
     Command::new("vesselflow")
         .version(env!("CARGO_PKG_VERSION"))
         .about("Vessel mask to centreline graph by Laplacian flow (Damseh et al.)")
@@ -150,9 +159,14 @@ where
             input: m.get_one::<PathBuf>("input").cloned().unwrap_or_default(),
             output: m.get_one::<PathBuf>("output").cloned().unwrap_or_default(),
             spacing: spacing(m)?,
+            plot: m.get_one::<PathBuf>("plot").cloned(),
             params: params(m)?,
         },
-        Some(("demo", m)) => Task::Demo { output: m.get_one::<PathBuf>("output").cloned(), params: params(m)? },
+        Some(("demo", m)) => Task::Demo {
+            output: m.get_one::<PathBuf>("output").cloned(),
+            plot: m.get_one::<PathBuf>("plot").cloned(),
+            params: params(m)?,
+        },
         _ => return Err(Failure::Usage("no command given (try --help)".to_string())),
     };
     Ok(Parsed::Run(task, verbosity))

@@ -5,8 +5,8 @@
 //! console script ([`run_with`]):
 //!
 //! ```text
-//! vesselflow skeletonize INPUT -o OUTPUT [--spacing A B C] [--PARAM VALUE ...] [-q|-v]
-//! vesselflow demo [-o OUTPUT]
+//! vesselflow skeletonize INPUT -o OUTPUT [--spacing A B C] [--plot PATH.png] [--PARAM VALUE ...] [-q|-v]
+//! vesselflow demo [-o OUTPUT] [--plot PATH.png]
 //! ```
 //!
 //! Exit codes: 0 success; 1 a file could not be read or written, or the run
@@ -15,6 +15,7 @@
 //! stderr, `vesselflow: error: <message>`, and no output file is left behind.
 
 mod args;
+mod plot;
 mod report;
 mod summary;
 
@@ -145,9 +146,12 @@ where
 
 fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bool) -> Result<(), Failure> {
     match task {
-        Task::Skeletonize { input, output, spacing, params } => {
+        Task::Skeletonize { input, output, spacing, plot, params } => {
             // Refuse a bad output path before reading or computing anything.
             vesselflow_io::check_graph_output(&output)?;
+            if let Some(path) = &plot {
+                plot::check_output(path)?;
+            }
             let skeletonizer = Skeletonizer::new(params)?;
             let volume = match spacing {
                 Some(s) => vesselflow_io::read_volume_with_spacing(&input, s)?,
@@ -171,11 +175,17 @@ fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bo
                 skel.len(),
                 skel.edges.len()
             ));
+            if let Some(path) = &plot {
+                save_plot(path, volume.mask.view(), volume.spacing, &skel, &reporter, interrupted)?;
+            }
             Ok(())
         }
-        Task::Demo { output, params } => {
+        Task::Demo { output, plot, params } => {
             if let Some(path) = &output {
                 vesselflow_io::check_graph_output(path)?;
+            }
+            if let Some(path) = &plot {
+                plot::check_output(path)?;
             }
             let skeletonizer = Skeletonizer::new(params)?;
             let mask = shapes::demo_volume();
@@ -186,6 +196,9 @@ fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bo
             if let Some(path) = &output {
                 save(path, &skel, skeletonizer.params(), interrupted)?;
                 reporter.line(&format!("vesselflow: wrote {}", path.display()));
+            }
+            if let Some(path) = &plot {
+                save_plot(path, mask.view(), [1.0; 3], &skel, &reporter, interrupted)?;
             }
             let (n0, n1, n2) = mask.dim();
             let info = &skel.info;
@@ -234,4 +247,26 @@ fn save(path: &Path, skel: &Skeleton, params: &Params, interrupted: &mut dyn FnM
         return Err(Failure::Interrupted);
     }
     Ok(vesselflow_io::write_graph(path, skel, params)?)
+}
+
+/// Draw and write the `--plot` picture, and say on stderr what its colour bar spans.
+fn save_plot(
+    path: &Path,
+    mask: ArrayView3<'_, u8>,
+    spacing: [f64; 3],
+    skel: &Skeleton,
+    reporter: &Reporter,
+    interrupted: &mut dyn FnMut() -> bool,
+) -> Result<(), Failure> {
+    if interrupted() {
+        return Err(Failure::Interrupted);
+    }
+    let picture = plot::render(mask, spacing, skel);
+    plot::write_png(path, &picture.image)?;
+    let bar = match picture.radius_range {
+        Some([lo, hi]) => format!("colour bar: edge radius {lo:.4} (bottom) to {hi:.4} (top), viridis"),
+        None => "no edges to draw".to_string(),
+    };
+    reporter.line(&format!("vesselflow: wrote {} ({bar})", path.display()));
+    Ok(())
 }

@@ -356,3 +356,116 @@ fn sigint_stops_the_binary_with_130_and_no_output() {
     assert!(rest.iter().any(|l| l == "vesselflow: error: interrupted; no output written"), "{rest:?}");
     assert_eq!(files_in(dir.path()), ["long.npy"]);
 }
+
+/// A cylinder of radius 4 along axis 2 (40 voxels) with its axis at (10, 10, ·), as `.npy`:
+/// unlike [`cylinder_npy`], it lies in the plane of the `--plot` projection.
+fn across_tube_npy(dir: &Path) -> PathBuf {
+    let path = dir.join("across.npy");
+    let tube = shapes::cylinder([40, 21, 21], 4.0).permuted_axes([1, 2, 0]).as_standard_layout().to_owned();
+    assert_eq!(tube.shape(), [21, 21, 40]);
+    tube.write_npy(File::create(&path).unwrap()).unwrap();
+    path
+}
+
+fn is_grey(p: &image::Rgb<u8>) -> bool {
+    p[0] == p[1] && p[1] == p[2]
+}
+
+#[test]
+fn plot_draws_the_centreline_in_colour_over_the_grey_projection() {
+    let dir = TempDir::new().unwrap();
+    let input = across_tube_npy(dir.path());
+    let (json, png) = (dir.path().join("g.json"), dir.path().join("tube.png"));
+    let out = vesselflow(&[
+        "skeletonize",
+        path_str(&input),
+        "-o",
+        path_str(&json),
+        "--spacing",
+        "1",
+        "2",
+        "1",
+        "--plot",
+        path_str(&png),
+    ]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let err = stderr(&out);
+    let line = err.lines().find(|l| l.contains("tube.png")).unwrap_or_else(|| panic!("no plot line in {err}"));
+    assert!(line.contains("colour bar: edge radius"), "{line}");
+    let image = image::open(&png).unwrap().to_rgb8();
+
+    // Axis 1: 21 voxels of 2 = 42 units, the long side (800 px); axis 2: 40 voxels of
+    // 1 = 40 units, 762 px; the colour bar is to the right of the projection.
+    let map_width = (40.0_f64 * 800.0 / 42.0).round() as u32;
+    assert_eq!(image.height(), 800);
+    assert!(image.width() > map_width && image.width() < map_width + 100, "{:?}", image.dimensions());
+    // The tube is 9 voxels (18 units) thick across the 40 units of its length.
+    let tube_rows =
+        (0..image.height()).filter(|&y| image.get_pixel(map_width / 2, y) != &image::Rgb([0, 0, 0])).count();
+    let ratio = tube_rows as f64 / f64::from(map_width);
+    assert!((ratio - 18.0 / 40.0).abs() < 0.03, "physical aspect: {tube_rows} rows over {map_width} px = {ratio}");
+
+    // The centreline, voxel row 10 of axis 1, is at pixel row 10.5 * 800 / 21 = 400.
+    let doc: Value = serde_json::from_reader(File::open(&json).unwrap()).unwrap();
+    let positions: Vec<[f64; 3]> = serde_json::from_value(doc["positions"].clone()).unwrap();
+    let min2 = positions.iter().map(|p| p[2]).fold(f64::INFINITY, f64::min);
+    let max2 = positions.iter().map(|p| p[2]).fold(f64::NEG_INFINITY, f64::max);
+    let px_per_unit = f64::from(map_width) / 40.0;
+    let (x0, x1) = (((min2 + 1.0) * px_per_unit) as u32, (max2 * px_per_unit) as u32);
+    assert!(x1 > x0 + 300, "the graph spans the tube: {min2}..{max2}");
+    for x in x0..x1 {
+        assert!((396..=404).any(|y| !is_grey(image.get_pixel(x, y))), "no coloured pixel at column {x}");
+    }
+    for (x, y, p) in image.enumerate_pixels() {
+        if x < map_width && !(390..=410).contains(&y) {
+            assert!(is_grey(p), "coloured pixel {p:?} off the centreline at ({x}, {y})");
+        }
+    }
+    assert!(image.enumerate_pixels().any(|(x, _, p)| x < map_width && p[0] > 0 && is_grey(p)), "grey foreground");
+}
+
+#[test]
+fn demo_writes_a_plot_and_says_what_the_colour_bar_spans() {
+    let dir = TempDir::new().unwrap();
+    let png = dir.path().join("demo.png");
+    let out = vesselflow(&["demo", "--plot", path_str(&png)]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(stderr(&out).contains("colour bar: edge radius"), "{}", stderr(&out));
+    // Demo volume 48 x 112 x 96, isotropic: 112 rows are the long side.
+    let image = image::open(&png).unwrap().to_rgb8();
+    assert_eq!(image.height(), 800);
+    assert!(image.width() > 686, "{:?}", image.dimensions());
+    assert!(image.pixels().filter(|p| !is_grey(p)).count() > 1000, "edges and colour bar");
+
+    let quiet = vesselflow(&["demo", "--plot", path_str(&png), "-q"]);
+    assert_eq!(quiet.status.code(), Some(0));
+    assert!(stderr(&quiet).is_empty(), "{}", stderr(&quiet));
+}
+
+#[test]
+fn plot_path_must_be_png_and_writable() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let output = dir.path().join("g.json");
+    for bad in ["plot.jpg", "plot", "plot.png.txt"] {
+        let plot = dir.path().join(bad);
+        let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), "--plot", path_str(&plot)]);
+        assert_error(&out, 2, bad);
+        assert!(stderr(&out).contains(".png"));
+    }
+    let out = vesselflow(&["demo", "--plot", path_str(&dir.path().join("demo.svg"))]);
+    assert_error(&out, 2, "demo.svg");
+
+    let missing_dir = dir.path().join("nowhere/plot.png");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), "--plot", path_str(&missing_dir)]);
+    assert_error(&out, 1, "nowhere/plot.png");
+    fs::write(dir.path().join("plain"), "x").unwrap();
+    let under_file = dir.path().join("plain/plot.png");
+    let out = vesselflow(&["demo", "--plot", path_str(&under_file)]);
+    assert_error(&out, 1, "plain/plot.png");
+    fs::create_dir(dir.path().join("taken.png")).unwrap();
+    let out = vesselflow(&["demo", "--plot", path_str(&dir.path().join("taken.png")), "-q"]);
+    assert_error(&out, 1, "taken.png");
+    assert_eq!(files_in(dir.path()), ["plain", "taken.png", "tube.npy"]);
+    assert!(files_in(&dir.path().join("taken.png")).is_empty());
+}

@@ -127,7 +127,7 @@ pub fn write_graph(path: &Path, skel: &Skeleton, params: &Params) -> Result<(), 
 /// [`write_graph`]. The arrays are checked first (shapes, edge ids in `0..N`,
 /// finite values, positive spacing, `info` and `params` JSON objects).
 pub fn write_graph_arrays(path: &Path, graph: &GraphArrays<'_>) -> Result<(), IoError> {
-    let format = output_format(path)?;
+    let format = check_graph_output(path)?;
     check_arrays(graph).map_err(|reason| IoError::InvalidGraph { path: path.to_path_buf(), reason })?;
     write_atomically(path, |w| match format {
         GraphFormat::GraphMl => write_graphml(w, graph),
@@ -140,18 +140,20 @@ pub fn write_graph_arrays(path: &Path, graph: &GraphArrays<'_>) -> Result<(), Io
 /// extension, not a directory, and a directory that exists and accepts a new file
 /// (checked by creating and removing a temporary file there).
 pub fn check_graph_output(path: &Path) -> Result<GraphFormat, IoError> {
-    let format = output_format(path)?;
-    temp_file_beside(path).map_err(|source| IoError::Write { path: path.to_path_buf(), source })?;
+    let format = GraphFormat::from_path(path).ok_or_else(|| IoError::UnsupportedGraph { path: path.to_path_buf() })?;
+    check_writable(path)?;
     Ok(format)
 }
 
-fn output_format(path: &Path) -> Result<GraphFormat, IoError> {
-    let format = GraphFormat::from_path(path).ok_or_else(|| IoError::UnsupportedGraph { path: path.to_path_buf() })?;
+/// Check, before any work, that a file can be written at `path`: it is not a
+/// directory, and its directory exists and accepts a new file (a probe file is
+/// created and removed).
+pub fn check_writable(path: &Path) -> Result<(), IoError> {
+    let error = |source| IoError::Write { path: path.to_path_buf(), source };
     if path.is_dir() {
-        let source = io::Error::new(io::ErrorKind::IsADirectory, "it is a directory");
-        return Err(IoError::Write { path: path.to_path_buf(), source });
+        return Err(error(io::Error::new(io::ErrorKind::IsADirectory, "it is a directory")));
     }
-    Ok(format)
+    temp_file_beside(path).map(drop).map_err(error)
 }
 
 fn check_arrays(g: &GraphArrays<'_>) -> Result<(), String> {
@@ -209,7 +211,12 @@ fn temp_file_beside(path: &Path) -> io::Result<NamedTempFile> {
         .map_err(|e| io::Error::new(e.kind(), format!("cannot create a file in {}: {}", dir.display(), e.kind())))
 }
 
-fn write_atomically(path: &Path, write: impl FnOnce(&mut BufWriter<&File>) -> io::Result<()>) -> Result<(), IoError> {
+/// Write `path` all or nothing: `write` fills a temporary file beside it, which is
+/// synced and renamed over `path` only if everything succeeded.
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut BufWriter<&File>) -> io::Result<()>,
+) -> Result<(), IoError> {
     let error = |source| IoError::Write { path: path.to_path_buf(), source };
     let temp = temp_file_beside(path).map_err(error)?;
     let mut writer = BufWriter::new(temp.as_file());

@@ -25,8 +25,8 @@ mod volume;
 
 pub use error::IoError;
 pub use graph::{
-    check_graph_output, params_json, run_info_json, write_graph, write_graph_arrays, GraphArrays, GraphFormat,
-    FORMAT_NAME, FORMAT_VERSION,
+    check_graph_output, check_writable, params_json, run_info_json, write_atomically, write_graph, write_graph_arrays,
+    GraphArrays, GraphFormat, FORMAT_NAME, FORMAT_VERSION,
 };
 /// The JSON library of [`GraphArrays`]' metadata, so callers need no dependency of their own.
 pub use serde_json;
