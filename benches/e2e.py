@@ -53,8 +53,7 @@ AUTHORS_CPU_SECONDS = 327.0
 TARGET_SPEEDUP = 300.0
 TARGET_BYTES_PER_VOXEL = 150.0
 TOOLS = ("vesselflow", "edt", "skimage+skan", "kimimaro")
-#: Distribution names of each tool's packages, for the versions line and the
-#: "not installed" check.
+#: Distribution names of each tool's packages, for the report's versions line.
 PACKAGES = {
     "vesselflow": ("vesselflow",),
     "edt": ("edt",),
@@ -242,6 +241,7 @@ def run_child(tool, mask_path, spacing, threads, timeout) -> dict:
 
 
 def versions() -> str:
+    """Installed version of numpy and of every tool's packages."""
     names = ["numpy"] + [p for t in TOOLS for p in PACKAGES[t]]
     out = []
     for name in names:
@@ -253,6 +253,7 @@ def versions() -> str:
 
 
 def machine() -> str:
+    """Cores, CPU model, memory, OS and Python of this machine, in one line."""
     model = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -331,19 +332,6 @@ def ratios(rows: list[tuple[str, str, dict]]) -> list[str]:
     return out
 
 
-def write_atomic(text: str, path: Path) -> None:
-    """Write ``text`` to ``path`` through a temp file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
@@ -367,7 +355,7 @@ def main() -> None:
         parser.error("--sizes must be at least 16")
 
     sys.path.insert(0, str(HERE))
-    from synthetic import describe, vascular_bed
+    from synthetic import describe, vascular_bed, write_atomic
 
     rows: list[tuple[str, str, dict]] = []
     volumes: list[str] = []
@@ -464,7 +452,8 @@ def main() -> None:
         )
     text = "\n".join(lines) + "\n"
     print(text)
-    write_atomic(text, args.out)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(args.out, lambda f: f.write(text.encode()))
     print(f"wrote {args.out}", file=sys.stderr)
 
 

@@ -22,8 +22,9 @@ use std::hint::black_box;
 use std::time::Duration;
 use vesselflow::cycles::short_cycle_area;
 use vesselflow::decimate::{decimate, NodeGraph};
-use vesselflow::grid::{self, Csr};
-use vesselflow::laplacian::{self, Laplacian};
+use vesselflow::grid;
+use vesselflow::laplacian;
+use vesselflow::pipeline::{contract_step, StageClock};
 use vesselflow::solver::{self, NormalOperator};
 use vesselflow::{volume, Params, Skeletonizer};
 
@@ -160,28 +161,9 @@ fn vascular_forest(n: usize) -> Array3<u8> {
 
 /// One contraction iteration (METHOD.md §2) on `g`, as the pipeline runs it.
 fn contract_once(g: &NodeGraph, p: &Params) -> NodeGraph {
-    let twins = g.graph.twins();
-    let ln = laplacian::l2_norm(&g.graph, &twins, &g.positions);
-    let lm = laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight);
-    let skeletal = laplacian::skeletal(&g.graph, &g.positions, p);
-    let op = operator(&g.graph, &ln, &lm, &skeletal, p);
-    let (positions, _) = solver::contract(&op, &g.positions, p.cg_tol, p.cg_max_iterations);
-    let moved = NodeGraph { positions, ..g.clone() };
-    let next = decimate(&moved, &skeletal, CELL).expect("cells of a 96³ volume are in range");
+    let (next, _) = contract_step(g.clone(), p, CELL, &mut StageClock::default()).expect("cells in range");
     black_box(short_cycle_area(&next.graph, &next.positions, p.max_cycle_nodes));
     next
-}
-
-/// The normal-equations operator of eq. 8 for the given Laplacians and anchoring.
-fn operator<'a>(
-    graph: &'a Csr,
-    ln: &'a Laplacian,
-    lm: &'a Laplacian,
-    skeletal: &[bool],
-    p: &Params,
-) -> NormalOperator<'a> {
-    let anchor2 = laplacian::anchors(skeletal, p).into_iter().map(|w| w * w).collect();
-    NormalOperator { graph, ln, lm, a2: p.alpha * p.alpha, b2: p.beta * p.beta, anchor2 }
 }
 
 fn stages(cr: &mut Criterion) {
@@ -208,7 +190,7 @@ fn stages(cr: &mut Criterion) {
     group.finish();
 
     let mut group = cr.benchmark_group("stages");
-    group.sample_size(20);
+    group.sample_size(10).measurement_time(Duration::from_secs(10));
     for (n, mask, fg) in &volumes {
         group.throughput(Throughput::Elements(*fg));
         group.bench_with_input(BenchmarkId::new("edt", n), mask, |b, m| {
@@ -234,7 +216,7 @@ fn stages(cr: &mut Criterion) {
         let ln = laplacian::l2_norm(&g.graph, &twins, &g.positions);
         let lm = laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight);
         let skeletal = laplacian::skeletal(&g.graph, &g.positions, &p);
-        let op = operator(&g.graph, &ln, &lm, &skeletal, &p);
+        let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, &p);
         group.bench_with_input(BenchmarkId::new("solve", n), &g, |b, g| {
             b.iter(|| solver::contract(&op, &g.positions, p.cg_tol, p.cg_max_iterations))
         });

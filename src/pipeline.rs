@@ -8,7 +8,7 @@ use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid;
 use crate::laplacian;
 use crate::params::{AreaReference, Params};
-use crate::solver::{self, NormalOperator};
+use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared, Voxel};
 use ndarray::ArrayView3;
 use std::time::Instant;
@@ -34,11 +34,12 @@ pub struct Skeletonizer {
 }
 
 /// Wall time per stage, accumulated in first-use order.
-#[derive(Default)]
-struct Clock(Vec<StageTime>);
+#[derive(Debug, Default)]
+pub struct StageClock(Vec<StageTime>);
 
-impl Clock {
-    fn time<R>(&mut self, stage: &'static str, f: impl FnOnce() -> R) -> R {
+impl StageClock {
+    /// Run `f`, adding its wall time to `stage`.
+    pub fn time<R>(&mut self, stage: &'static str, f: impl FnOnce() -> R) -> R {
         let t = Instant::now();
         let r = f();
         let dt = t.elapsed().as_secs_f64();
@@ -62,6 +63,25 @@ fn report(
     } else {
         Err(Error::Interrupted)
     }
+}
+
+/// One contraction iteration (Algorithm 1, lines 3–7): weights and anchoring from the
+/// current geometry, the least-squares solve of eq. 8, and decimation, with the time
+/// of each part added to `clock`. Runs on the current rayon pool.
+pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageClock) -> Result<(NodeGraph, SolveStats)> {
+    let twins = clock.time("laplacian", || g.graph.twins());
+    let (ln, lm, skeletal) = clock.time("laplacian", || {
+        (
+            laplacian::l2_norm(&g.graph, &twins, &g.positions),
+            laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight),
+            laplacian::skeletal(&g.graph, &g.positions, p),
+        )
+    });
+    let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
+    let (positions, stats) = clock.time("solve", || solver::contract(&op, &g.positions, p.cg_tol, p.cg_max_iterations));
+    g.positions = positions;
+    let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
+    Ok((next, stats))
 }
 
 impl Skeletonizer {
@@ -124,7 +144,7 @@ impl Skeletonizer {
             .build()
             .map_err(|e| Error::ThreadPool { threads: self.params.threads, reason: e.to_string() })?;
         let p = &self.params;
-        let mut clock = Clock::default();
+        let mut clock = StageClock::default();
         let mut info = RunInfo::default();
 
         let edt = clock.time("edt", || pool.install(|| edt_squared(mask, spacing)));
@@ -155,31 +175,8 @@ impl Skeletonizer {
         let mut a_t = a0;
         info.converged = a_t <= info.area_reference;
         while !info.converged && info.iterations < p.max_iterations {
-            let (moved, stats) = pool.install(|| {
-                let twins = clock.time("laplacian", || g.graph.twins());
-                let (ln, lm, skeletal) = clock.time("laplacian", || {
-                    (
-                        laplacian::l2_norm(&g.graph, &twins, &g.positions),
-                        laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight),
-                        laplacian::skeletal(&g.graph, &g.positions, p),
-                    )
-                });
-                let anchor2 = laplacian::anchors(&skeletal, p).into_iter().map(|w| w * w).collect();
-                let op = NormalOperator {
-                    graph: &g.graph,
-                    ln: &ln,
-                    lm: &lm,
-                    a2: p.alpha * p.alpha,
-                    b2: p.beta * p.beta,
-                    anchor2,
-                };
-                let (positions, stats) =
-                    clock.time("solve", || solver::contract(&op, &g.positions, p.cg_tol, p.cg_max_iterations));
-                ((positions, skeletal), stats)
-            });
-            let (positions, skeletal) = moved;
-            g.positions = positions;
-            g = clock.time("decimate", || pool.install(|| decimate(&g, &skeletal, c)))?;
+            let (next, stats) = pool.install(|| contract_step(std::mem::take(&mut g), p, c, &mut clock))?;
+            g = next;
             a_t = clock.time("cycles", || area(&g));
             info.iterations += 1;
             info.cg_iterations.push(stats.iterations);

@@ -16,6 +16,7 @@
 
 use crate::grid::{for_row_blocks, Csr};
 use crate::laplacian::Laplacian;
+use crate::params::Params;
 use rayon::prelude::*;
 
 type V3 = [f64; 3];
@@ -33,6 +34,15 @@ pub struct NormalOperator<'a> {
     pub b2: f64,
     /// `Wg_i²` per node.
     pub anchor2: Vec<f64>,
+}
+
+impl<'a> NormalOperator<'a> {
+    /// The operator of one contraction iteration: `alpha`, `beta` from `params`, and
+    /// anchoring `gamma` (`eps_gamma * gamma` for skeleton-like nodes).
+    pub fn new(graph: &'a Csr, ln: &'a Laplacian, lm: &'a Laplacian, skeletal: &[bool], params: &Params) -> Self {
+        let anchor2 = crate::laplacian::anchors(skeletal, params).into_iter().map(|w| w * w).collect();
+        NormalOperator { graph, ln, lm, a2: params.alpha * params.alpha, b2: params.beta * params.beta, anchor2 }
+    }
 }
 
 /// `(L x)_i` for one node.
