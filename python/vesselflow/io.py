@@ -17,7 +17,7 @@ import json
 import os
 import secrets
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
@@ -75,7 +75,7 @@ def graph_extension(path: str | os.PathLike[str]) -> str:
     return suffix.lower()
 
 
-def _check_header(meta: dict[str, Any]) -> None:
+def _check_header(meta: Mapping[str, Any]) -> None:
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise ValueError(
             f"expected format {FORMAT!r} version {VERSION}, "
@@ -83,18 +83,22 @@ def _check_header(meta: dict[str, Any]) -> None:
         )
 
 
+def _from_columns(arrays: Mapping[str, Any], meta: Mapping[str, Any]) -> VesselGraph:
+    """A graph from its array columns and its checked metadata (info, params)."""
+    _check_header(meta)
+    return VesselGraph(
+        positions=arrays["positions"],
+        radii=arrays["radii"],
+        edges=arrays["edges"],
+        spacing=arrays["spacing"],
+        info=meta["info"],
+        params=meta["params"],
+    )
+
+
 def _read_npz(path: Path) -> VesselGraph:
     with np.load(path, allow_pickle=False) as z:
-        meta = json.loads(z["metadata"].tobytes().decode("utf-8"))
-        _check_header(meta)
-        return VesselGraph(
-            positions=z["positions"],
-            radii=z["radii"],
-            edges=z["edges"],
-            spacing=z["spacing"],
-            info=meta["info"],
-            params=meta["params"],
-        )
+        return _from_columns(z, json.loads(z["metadata"].tobytes().decode("utf-8")))
 
 
 def _read_json(path: Path) -> VesselGraph:
@@ -102,15 +106,7 @@ def _read_json(path: Path) -> VesselGraph:
         doc = json.load(f)
     if not isinstance(doc, dict):
         raise ValueError("top level is not a JSON object")
-    _check_header(doc)
-    return VesselGraph(
-        positions=doc["positions"],
-        radii=doc["radii"],
-        edges=doc["edges"],
-        spacing=doc["spacing"],
-        info=doc["info"],
-        params=doc["params"],
-    )
+    return _from_columns(doc, doc)
 
 
 def _read_graphml(path: Path) -> VesselGraph:
