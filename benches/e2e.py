@@ -4,7 +4,7 @@ One command::
 
     python benches/e2e.py [--sizes 128 256] [--threads N] [--out benches/results/e2e.md]
 
-For each size it makes a bed with ``benches/synthetic.py`` (seed 0, about 5 % foreground)
+For each size it makes a bed with ``vesselflow.synth.vascular_bed`` (seed 0, about 5 % foreground)
 and runs, each in its own subprocess so that each peak RSS is its own:
 
 - ``vesselflow.skeletonize(mask, spacing, threads=N)``: per-stage seconds from
@@ -355,7 +355,9 @@ def main() -> None:
         parser.error("--sizes must be at least 16")
 
     sys.path.insert(0, str(HERE))
-    from synthetic import describe, vascular_bed, write_atomic
+    from synthetic import describe, write_atomic
+
+    from vesselflow.synth import vascular_bed
 
     rows: list[tuple[str, str, dict]] = []
     volumes: list[str] = []

@@ -74,12 +74,20 @@ pub fn medial(g: &Csr, twins: &[usize], radii: &[f64], kind: MedialWeight) -> La
 /// harder and kept out of decimation, and such triangles never go away: on
 /// `damseh_synth2` a thousand of them stall the convergence measure above its
 /// threshold for all 100 iterations. A coincident neighbour disqualifies.
+///
+/// With `anchor_ends`, a node of degree 1 (a vessel's free end) is skeleton-like
+/// too: otherwise its single neighbour pulls it inward at every iteration, and on
+/// synthetic trees the ends of the graph stop a median 3.6 voxels short of the
+/// true ends instead of 1.9.
 pub fn skeletal(g: &Csr, positions: &[[f64; 3]], params: &Params) -> Vec<bool> {
     let min_cos = params.skeletal_angle.to_radians().cos();
     (0..g.nodes())
         .into_par_iter()
         .map(|i| {
             let nb = g.neighbours(i);
+            if nb.len() == 1 {
+                return params.anchor_ends;
+            }
             if nb.len() < 2 {
                 return false;
             }
@@ -147,9 +155,11 @@ mod tests {
     #[test]
     fn collinear_nodes_are_skeletal() {
         let g = path(3);
-        let p = Params::default();
+        let p = Params { anchor_ends: false, ..Params::default() };
         let straight = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.1, 0.0]];
         assert_eq!(skeletal(&g, &straight, &p), vec![false, true, false]);
+        // With `anchor_ends` (the default) the path's two ends count too.
+        assert_eq!(skeletal(&g, &straight, &Params::default()), vec![true, true, true]);
         let bent = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 1.0, 0.0]];
         assert_eq!(skeletal(&g, &bent, &p), vec![false, false, false]);
         // A flattened triangle: collinear, but no node of it is a curve node.

@@ -91,6 +91,10 @@ pub struct Params {
     /// Angle (degrees) within which all neighbour directions must be collinear for a
     /// node to count as skeleton-like (adaptive anchoring).
     pub skeletal_angle: f64,
+    /// Count degree-1 nodes (vessel ends) as skeleton-like too, so they are anchored
+    /// `eps_gamma` times harder and kept through decimation. METHOD.md's test needs
+    /// degree > 1; without this the flow pulls every free end inward along its vessel.
+    pub anchor_ends: bool,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,
     /// Weight of the l2-norm Laplacian.
@@ -127,6 +131,7 @@ impl Default for Params {
             radius_correction: 0.5,
             medial_weight: MedialWeight::Radius,
             skeletal_angle: 10.0,
+            anchor_ends: true,
             eps_gamma: 10.0,
             alpha: 0.5,
             beta: 0.5,
@@ -190,12 +195,13 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 18] = [
+    pub const NAMES: [&'static str; 19] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
         "medial_weight",
         "skeletal_angle",
+        "anchor_ends",
         "eps_gamma",
         "alpha",
         "beta",
@@ -223,6 +229,7 @@ impl Params {
                 }
             }
             "reconnect_thin" => self.reconnect_thin = as_bool(name, v)?,
+            "anchor_ends" => self.anchor_ends = as_bool(name, v)?,
             "radius_correction" => self.radius_correction = in_range(name, as_f64(name, v)?, 0.0, 1.0, false)?,
             "medial_weight" => {
                 self.medial_weight = match as_str(name, v)? {
@@ -302,6 +309,7 @@ impl Params {
             ("radius_correction", Value::Float(self.radius_correction)),
             ("medial_weight", Value::Str(mw.into())),
             ("skeletal_angle", Value::Float(self.skeletal_angle)),
+            ("anchor_ends", Value::Bool(self.anchor_ends)),
             ("eps_gamma", Value::Float(self.eps_gamma)),
             ("alpha", Value::Float(self.alpha)),
             ("beta", Value::Float(self.beta)),

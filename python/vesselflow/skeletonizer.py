@@ -42,6 +42,9 @@ class Skeletonizer:
     skeletal_angle : float in [0, 90]
         Degrees within which all neighbour directions of a node must be collinear
         for it to count as already skeletal (adaptive anchoring).
+    anchor_ends : bool
+        Also count nodes of degree 1 (free vessel ends) as skeletal, so the flow does not
+        pull ends inward along their vessels (not in METHOD.md; ``False`` follows it).
     eps_gamma : float >= 1
         Anchoring factor of skeletal nodes.
     alpha, beta : float >= 0
@@ -89,6 +92,7 @@ class Skeletonizer:
         radius_correction: float = 0.5,
         medial_weight: Literal["radius", "difference"] = "radius",
         skeletal_angle: float = 10.0,
+        anchor_ends: bool = True,
         eps_gamma: float = 10.0,
         alpha: float = 0.5,
         beta: float = 0.5,
