@@ -84,7 +84,9 @@ pub struct Params {
     pub reconnect_thin: bool,
     /// Subtracted from every output radius, in units of the base cell `c = min(spacing)`.
     /// The EDT measures to the nearest background voxel *centre*, half a voxel beyond
-    /// the boundary a voxelised surface represents; 0.5 removes that offset.
+    /// the boundary a voxelised surface represents; 0.5 removes that offset. (0.75 scores
+    /// better on the thin vessels of the synthetic trees, `benches/results/sensitivity.md`,
+    /// but makes thick tubes' radii a voxel low: r = 4 gives 3.37, r = 5 gives 3.84.)
     pub radius_correction: f64,
     /// Medial affinity weighting.
     pub medial_weight: MedialWeight,
@@ -97,7 +99,9 @@ pub struct Params {
     pub anchor_ends: bool,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,
-    /// Weight of the l2-norm Laplacian.
+    /// Weight of the l2-norm Laplacian. Only the ratios alpha : beta : gamma matter; the
+    /// default 0.25 (METHOD.md: 0.5) scored best on the synthetic trees
+    /// (`benches/results/sensitivity.md`).
     pub alpha: f64,
     /// Weight of the medial Laplacian.
     pub beta: f64,
@@ -133,7 +137,7 @@ impl Default for Params {
             skeletal_angle: 10.0,
             anchor_ends: true,
             eps_gamma: 10.0,
-            alpha: 0.5,
+            alpha: 0.25,
             beta: 0.5,
             gamma: 0.05,
             cg_tol: 1e-6,

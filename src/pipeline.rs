@@ -204,6 +204,9 @@ impl Skeletonizer {
             info.refine_iterations += 1;
             report(observer, "refine", info.refine_iterations, g.positions.len(), kept as f64)?;
         }
+        if info.refine_iterations == 0 {
+            report(observer, "refine", 0, g.positions.len(), 0.0)?;
+        }
         if !info.refine_converged {
             info.refine_converged =
                 pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)).is_none();

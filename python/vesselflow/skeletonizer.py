@@ -94,7 +94,7 @@ class Skeletonizer:
         skeletal_angle: float = 10.0,
         anchor_ends: bool = True,
         eps_gamma: float = 10.0,
-        alpha: float = 0.5,
+        alpha: float = 0.25,
         beta: float = 0.5,
         gamma: float = 0.05,
         cg_tol: float = 1e-6,

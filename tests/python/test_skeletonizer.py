@@ -24,7 +24,7 @@ def test_core_lists_every_method_parameter_with_its_default():
         "skeletal_angle": 10.0,
         "anchor_ends": True,
         "eps_gamma": 10.0,
-        "alpha": 0.5,
+        "alpha": 0.25,
         "beta": 0.5,
         "gamma": 0.05,
         "cg_tol": 1e-6,
