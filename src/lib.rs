@@ -14,6 +14,7 @@
 //! | [`solver`] | normal equations of eq. 8 by preconditioned conjugate gradients | §III-B, eq. 8 |
 //! | [`decimate`] | cell-hash clustering with max-radius transfer | §III-E, §III-F |
 //! | [`cycles`] | short fundamental cycles: convergence area and refinement | §III-C, §III-G, eqs. 10–11 |
+//! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
 //! | [`shapes`] | analytic test volumes and the built-in demo volume | — |
@@ -33,6 +34,7 @@
 
 pub mod cycles;
 pub mod decimate;
+pub mod ends;
 pub mod error;
 pub mod graph;
 pub mod grid;

@@ -94,8 +94,9 @@ pub struct Params {
     /// node to count as skeleton-like (adaptive anchoring).
     pub skeletal_angle: f64,
     /// Count degree-1 nodes (vessel ends) as skeleton-like too, so they are anchored
-    /// `eps_gamma` times harder and kept through decimation. METHOD.md's test needs
-    /// degree > 1; without this the flow pulls every free end inward along its vessel.
+    /// `eps_gamma` times harder and kept through decimation, and at output move each
+    /// to one radius inside the mask's end along its vessel (`ends`). METHOD.md's test
+    /// needs degree > 1; without this the flow pulls every free end inward.
     pub anchor_ends: bool,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,

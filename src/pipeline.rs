@@ -3,6 +3,7 @@
 
 use crate::cycles::{refine_step, short_cycle_area};
 use crate::decimate::{decimate, NodeGraph, CELL_LIMIT};
+use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid;
@@ -214,11 +215,16 @@ impl Skeletonizer {
 
         let out = clock.time("output", || {
             let shift = p.radius_correction * c;
+            let radii: Vec<f64> = g.radii.iter().map(|r| (r - shift).max(0.0)).collect();
+            let positions = if p.anchor_ends {
+                pool.install(|| extend_ends(&g.graph, &g.positions, &radii, mask, spacing))
+            } else {
+                std::mem::take(&mut g.positions)
+            };
             Skeleton {
-                radii: g.radii.iter().map(|r| (r - shift).max(0.0)).collect(),
+                radii,
                 edges: g.graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
-                positions: g
-                    .positions
+                positions: positions
                     .iter()
                     .map(|q| std::array::from_fn(|d| q[d] + offset[d] as f64 * spacing[d]))
                     .collect(),

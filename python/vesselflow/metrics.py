@@ -441,7 +441,7 @@ class _KeyTree:
     terminations), with cumulative path lengths from the root (3-D, xy-plane, z) and an Euler
     tour for ancestor tests."""
 
-    def __init__(self, graph: VesselGraph, root: int, z_axis: int) -> None:
+    def __init__(self, graph: VesselGraph, root: int, z_axis: int | None) -> None:
         pos = graph.positions
         n = graph.n_nodes
         e = graph.edges[graph.edges[:, 0] != graph.edges[:, 1]]
@@ -460,7 +460,8 @@ class _KeyTree:
         delta = pos[order[1:]] - pos[children_of_parent]
         step[order[1:], 0] = np.linalg.norm(delta, axis=1)
         step[order[1:], 1] = np.linalg.norm(delta[:, xy_axes], axis=1)
-        step[order[1:], 2] = np.abs(delta[:, z_axis])
+        if z_axis is not None:
+            step[order[1:], 2] = np.abs(delta[:, z_axis])
         cum = np.zeros((n, 3))
         is_key = np.zeros(n, dtype=bool)
         is_key[order] = children[order] != 1
@@ -536,7 +537,7 @@ def diadem(
     weight_scheme: int = 1,
     z_path: bool = True,
     excess_nodes: bool = True,
-    z_axis: int = 0,
+    z_axis: int | None = 0,
 ) -> float:
     """DIADEM score in [0, 1] of ``graph_tree`` against the gold standard ``truth_tree``.
 
@@ -570,7 +571,9 @@ def diadem(
     ``terminal_threshold > 0``, a gold termination with no candidate may also match a test
     termination within ``terminal_threshold`` times the Euclidean thresholds whose path is at
     least ``terminal_path_threshold`` times the gold one (a simplified form of the jar's
-    terminal rule). With ``z_path=False`` z is ignored in distances and paths.
+    terminal rule). With ``z_path=False`` z is ignored in distances and paths. With
+    ``z_axis=None`` there is no z: distances and path lengths are 3-D and are held to the xy
+    thresholds alone (for isotropic volumes, where no axis is the microscope's coarse one).
 
     ``score = sum of weights of matched gold nodes / (sum of gold weights + sum of weights of
     unmatched test key nodes)``, the last term only with ``excess_nodes``.
@@ -589,8 +592,8 @@ def diadem(
     spur = _check_nonnegative(remove_spurs, "remove_spurs")
     if weight_scheme not in (1, 2, 3, 4):
         raise ValueError(f"weight_scheme must be 1, 2, 3 or 4, got {weight_scheme!r}")
-    if z_axis not in (0, 1, 2):
-        raise ValueError(f"z_axis must be 0, 1 or 2, got {z_axis!r}")
+    if z_axis not in (0, 1, 2, None):
+        raise ValueError(f"z_axis must be 0, 1, 2 or None, got {z_axis!r}")
     if truth.n_nodes == 0 or graph.n_nodes == 0:
         raise ValueError("both trees need at least one node")
     if root is None:
@@ -615,7 +618,7 @@ def diadem(
     xy_axes = [a for a in range(3) if a != z_axis]
     test_keys = np.array(test.keys[1:], dtype=np.int64)
     test_pos = test.pos[test_keys] if test_keys.size else np.zeros((0, 3))
-    use_z = bool(z_path)
+    use_z = bool(z_path) and z_axis is not None
     match: dict[int, int] = {root: groot}
     matched_test = {groot}
     nearest_matched: dict[int, int] = {root: root}  # gold key -> nearest matched ancestor-or-self
