@@ -12,6 +12,7 @@
 //! | [`grid`] | grid graph (CSR) from the mask, thin-vessel reconnection, components | §III-A |
 //! | [`laplacian`] | l2-norm and medial weights, adaptive anchoring | §III-B, §III-D, eqs. 2–4, 9 |
 //! | [`solver`] | normal equations of eq. 8 by preconditioned conjugate gradients | §III-B, eq. 8 |
+//! | [`precondition`] | the assembled normal matrix and its block Gauss–Seidel preconditioner | eq. 8 |
 //! | [`decimate`] | cell-hash clustering with max-radius transfer | §III-E, §III-F |
 //! | [`cycles`] | short fundamental cycles: convergence area and refinement | §III-C, §III-G, eqs. 10–11 |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
@@ -41,6 +42,7 @@ pub mod grid;
 pub mod laplacian;
 pub mod params;
 pub mod pipeline;
+pub mod precondition;
 pub mod shapes;
 pub mod solver;
 pub mod volume;
