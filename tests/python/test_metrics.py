@@ -226,6 +226,19 @@ def test_diadem_path_length_rule_rejects_a_detour():
     assert diadem(truth, close) == 1.0
 
 
+def test_diadem_without_a_z_axis_compares_3d_path_lengths():
+    # A straight gold path along axis 2; the test path zigzags +-0.5 along axis 0 (the
+    # default z axis) every 2.5 units: its 3-D length is 7 % longer, its summed |dz| 7 of 20.
+    truth = VesselGraph([[0, 0, 0], [0, 0, 20]], [2, 1], [[0, 1]])
+    zig = [[0.5 * (-1.0) ** k if 0 < k < 8 else 0.0, 0, 2.5 * k] for k in range(9)]
+    graph = VesselGraph(zig, np.ones(9), [[k, k + 1] for k in range(8)])
+    assert diadem(truth, graph, z_axis=0) == 0.0  # the z path (7) exceeds 0.2 * 20
+    assert diadem(truth, graph, z_axis=None) == 1.0  # 3-D path 21.4 is within 0.08 * 20
+    assert diadem(truth, graph, z_axis=None, xy_path_thresh=0.05) == 0.0
+    with pytest.raises(ValueError, match="z_axis"):
+        diadem(truth, graph, z_axis=3)
+
+
 def test_diadem_excess_nodes_count_against_score():
     truth = VesselGraph([[0, 0, 0], [0, 0, 20]], [2, 1], [[0, 1]])
     spur = VesselGraph(
