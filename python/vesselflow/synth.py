@@ -11,7 +11,7 @@ the graphs :func:`vesselflow.skeletonize` returns for that mask and spacing.
 - :func:`capillary_network`: a loopy mesh of thin tubes with a known cycle rank, like the
   two-photon microscopy stacks of section IV-E;
 - :func:`cylinder`, :func:`torus`, :func:`y_bifurcation`, :func:`helix`: analytic shapes;
-- :func:`vascular_bed`: the benchmark beds of ``benches/e2e.py`` (mask only).
+- :func:`vascular_bed`: the benchmark beds of ``benches/performance.py`` (mask only).
 
 All tubes are drawn by one rasteriser: a union of *round cones* (capsules whose radius may
 vary linearly from one end to the other: the union of the balls centred on a segment with
@@ -1400,7 +1400,7 @@ def _paint_balls(mask: BoolArray, centres: FloatArray, radii: FloatArray) -> Non
 def vascular_bed(size: int, seed: int = 0, fraction: float = 0.05, loops: int = 4) -> BoolArray:
     """A ``(size, size, size)`` boolean vascular bed with about ``fraction`` foreground.
 
-    The benchmark volume of ``benches/e2e.py`` (mask only, unit spacing, no truth): a
+    The benchmark volume of ``benches/performance.py`` (mask only, unit spacing, no truth): a
     connected tree of random, gently curving tubes of radii 1.5 to 6 voxels plus ``loops``
     anastomoses, one 26-connected component, no tube cut by the border.
 

@@ -1,19 +1,22 @@
-"""End-to-end benchmark: vesselflow next to its peers on synthetic vascular beds.
+"""Performance benchmark: vesselflow next to its peers on synthetic vascular beds.
 
 One command::
 
-    python benches/e2e.py [--sizes 128 256] [--threads N] [--out benches/results/e2e.md]
+    python benches/performance.py [--sizes 128 256 512] [--threads 1 2] [--out FILE]
 
 For each size it makes a bed with ``vesselflow.synth.vascular_bed`` (seed 0, about 5 % foreground)
 and runs, each in its own subprocess so that each peak RSS is its own:
 
-- ``vesselflow.skeletonize(mask, spacing, threads=N)``: per-stage seconds from
-  ``info["stage_seconds"]``, contraction and refinement iterations, nodes and edges;
+- ``vesselflow.skeletonize(mask, spacing, threads=N)`` once per ``--threads`` count:
+  per-stage seconds from ``info["stage_seconds"]``, per-stage peak memory (from its
+  progress callback, which resets the high-water mark after every stage), contraction and
+  refinement iterations, nodes and edges, and a SHA-256 of the output arrays (the thread
+  counts must give identical outputs);
 - ``edt.edt(mask, anisotropy=spacing, black_border=True, parallel=N)``: the distance
   transform alone, a floor for any method that starts with one;
 - scikit-image ``skeletonize`` + ``skan.Skeleton``: voxel thinning and its branch graph
   (single-threaded; skan's numba functions are compiled before timing);
-- kimimaro (TEASAR) at the ``--kimimaro-sizes`` only (default 128), with ``parallel=1``
+- kimimaro (TEASAR) at the ``--kimimaro-sizes`` only (default 128 and 256), with ``parallel=1``
   and the parameters in ``KIMIMARO_TEASAR`` below.
 
 Then vesselflow alone on ``damseh_synth2`` (../shared/data), whose CPU-seconds are set
@@ -23,7 +26,8 @@ Each child reports wall seconds, CPU seconds (user + system, all threads), and i
 RSS (``ru_maxrss`` read after the work; the high-water mark is reset through
 ``/proc/self/clear_refs`` once the mask is loaded) minus its RSS at that moment: the memory
 the method itself needed, also given per foreground voxel. A peer whose package is missing
-gets a "not installed" row and the run goes on. The table is printed and written to
+gets a "not installed" row and the run goes on. The report (the issue's targets measured,
+every run, memory per stage, thread scaling, ratios to the peers) is printed and written to
 ``--out`` (atomically).
 """
 
@@ -79,13 +83,35 @@ KIMIMARO_TEASAR = {
 # --------------------------------------------------------------------------- child side
 
 
-def _rss_bytes() -> int:
-    """Current resident set size of this process (Linux)."""
+def _status_bytes(key: str) -> int:
+    """A ``/proc/self/status`` memory figure (``VmRSS``, ``VmHWM``) in bytes (Linux)."""
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmRSS:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024
-    raise RuntimeError("no VmRSS in /proc/self/status")
+    raise RuntimeError(f"no {key} in /proc/self/status")
+
+
+def _rss_bytes() -> int:
+    """Current resident set size of this process."""
+    return _status_bytes("VmRSS")
+
+
+class _StagePeaks:
+    """vesselflow's progress callback: the peak RSS over ``baseline`` during each stage.
+
+    The core reports after every stage and contraction iteration; at each report the
+    high-water mark since the previous one is charged to the stage just reported, then
+    reset, so each stage's figure is its own peak."""
+
+    def __init__(self, baseline: int) -> None:
+        self.baseline = baseline
+        self.peaks: dict[str, int] = {}
+
+    def __call__(self, stage: str, iteration: int, nodes: int, measure: float) -> None:
+        peak = _status_bytes("VmHWM") - self.baseline
+        self.peaks[stage] = max(self.peaks.get(stage, 0), peak)
+        _reset_peak_rss()
 
 
 def _reset_peak_rss() -> None:
@@ -109,17 +135,25 @@ def _prepare(tool: str, threads: int, spacing: tuple[float, float, float]):
     """Import ``tool`` and return ``(convert, run)``: the mask's conversion to the tool's
     input (not timed) and the timed work, which returns ``(stages, result)``."""
     if tool == "vesselflow":
+        import hashlib
+
         import vesselflow
 
         def run(mask):
-            graph = vesselflow.skeletonize(mask, spacing=spacing, threads=threads)
+            peaks = _StagePeaks(_rss_bytes())
+            graph = vesselflow.skeletonize(mask, spacing=spacing, threads=threads, progress=peaks)
             info = graph.info
+            digest = hashlib.sha256()
+            for array in (graph.positions, graph.radii, graph.edges):
+                digest.update(array.tobytes())
             return dict(info["stage_seconds"]), {
                 "nodes": len(graph.positions),
                 "edges": len(graph.edges),
                 "iterations": info["iterations"],
                 "converged": info["converged"],
                 "refine_iterations": info["refine_iterations"],
+                "stage_peak_bytes": peaks.peaks,
+                "sha256": digest.hexdigest(),
             }
 
         return (lambda m: m), run
@@ -285,7 +319,14 @@ def _fmt_result(tool: str, r: dict) -> str:
     return "—"
 
 
-def table(rows: list[tuple[str, str, dict]]) -> list[str]:
+Row = tuple[str, str, int, dict]  # volume, tool, threads, child report
+
+
+def _name(tool: str, threads: int) -> str:
+    return f"{tool} ({threads} thr.)" if tool in ("vesselflow", "edt") else tool
+
+
+def table(rows: list[Row]) -> list[str]:
     out = [
         (
             "| volume | tool | stages (s) | wall (s) | CPU (s) | peak RSS over mask (MiB) "
@@ -293,16 +334,17 @@ def table(rows: list[tuple[str, str, dict]]) -> list[str]:
         ),
         "|---|---|---|---:|---:|---:|---:|---:|---|",
     ]
-    for volume, tool, rep in rows:
+    for volume, tool, threads, rep in rows:
+        name = _name(tool, threads)
         if rep["status"] != "ok":
             status = rep["status"]
             detail = rep.get("detail", "") if status != "not installed" else ""
             note = f"{status}: {detail}" if detail else status
-            out.append(f"| {volume} | {tool} | {note} | | | | | | |")
+            out.append(f"| {volume} | {name} | {note} | | | | | | |")
             continue
         fg = rep["foreground"]
         out.append(
-            f"| {volume} | {tool} | {_fmt_stages(rep['stages'])} | {rep['wall']:.3f} "
+            f"| {volume} | {name} | {_fmt_stages(rep['stages'])} | {rep['wall']:.3f} "
             f"| {rep['cpu']:.3f} | {rep['peak_extra'] / 2**20:.1f} "
             f"| {rep['peak_extra'] / fg:.0f} | {1e6 * rep['wall'] / fg:.2f} "
             f"| {_fmt_result(tool, rep['result'])} |"
@@ -310,10 +352,52 @@ def table(rows: list[tuple[str, str, dict]]) -> list[str]:
     return out
 
 
-def ratios(rows: list[tuple[str, str, dict]]) -> list[str]:
-    """Peer ÷ vesselflow, wall and CPU, per volume that has both."""
-    by = {(v, t): r for v, t, r in rows if r["status"] == "ok"}
-    volumes = list(dict.fromkeys(v for v, _, _ in rows))
+def stage_memory(rows: list[Row]) -> list[str]:
+    """vesselflow's peak RSS over the mask during each stage."""
+    stages = ("edt", "grid", "contract", "refine", "output")
+    out = [
+        "| volume | threads | " + " | ".join(f"{s} (MiB, B/fg)" for s in stages) + " |",
+        "|---|---:|" + "---:|" * len(stages),
+    ]
+    for volume, tool, threads, rep in rows:
+        if tool != "vesselflow" or rep["status"] != "ok":
+            continue
+        peaks, fg = rep["result"]["stage_peak_bytes"], rep["foreground"]
+        cells = [
+            f"{peaks[s] / 2**20:.0f}, {peaks[s] / fg:.0f}" if s in peaks else "-" for s in stages
+        ]
+        out.append(f"| {volume} | {threads} | " + " | ".join(cells) + " |")
+    return out
+
+
+def scaling(rows: list[Row]) -> list[str]:
+    """vesselflow's wall time per thread count, and whether the outputs are identical."""
+    ours: dict[str, dict[int, dict]] = {}
+    for volume, tool, threads, rep in rows:
+        if tool == "vesselflow" and rep["status"] == "ok":
+            ours.setdefault(volume, {})[threads] = rep
+    out = [
+        "| volume | wall per thread count (s) | speed-up, fewest to most threads "
+        "| outputs identical |",
+        "|---|---|---:|---|",
+    ]
+    for volume, by in ours.items():
+        counts = sorted(by)
+        walls = ", ".join(f"{t}: {by[t]['wall']:.2f}" for t in counts)
+        speed = by[counts[0]]["wall"] / by[counts[-1]]["wall"]
+        same = len({by[t]["result"]["sha256"] for t in counts}) == 1
+        out.append(f"| {volume} | {walls} | {speed:.2f} | {'yes' if same else 'NO'} |")
+    return out
+
+
+def ratios(rows: list[Row], threads: int) -> list[str]:
+    """Peer ÷ vesselflow (at ``threads``), wall and CPU, per volume that has both."""
+    by = {
+        (v, t): r
+        for v, t, n, r in rows
+        if r["status"] == "ok" and (t != "vesselflow" or n == threads)
+    }
+    volumes = list(dict.fromkeys(v for v, _, _, _ in rows))
     out = [
         "| volume | peer | wall ratio | CPU ratio | peak-memory ratio |",
         "|---|---|---:|---:|---:|",
@@ -332,35 +416,109 @@ def ratios(rows: list[tuple[str, str, dict]]) -> list[str]:
     return out
 
 
+def targets(rows: list[Row], sizes: list[int], threads: int) -> list[str]:
+    """The issue's targets, measured."""
+    ok = {(v, t, n): r for v, t, n, r in rows if r["status"] == "ok"}
+
+    def ours(v: str, n: int = threads) -> dict | None:
+        return ok.get((v, "vesselflow", n))
+
+    out = ["| target | measured | met |", "|---|---|---|"]
+
+    def add(name: str, value: float | None, fmt: str, good: bool | None) -> None:
+        shown = "not run" if value is None else fmt.format(value)
+        out.append(f"| {name} | {shown} | {'-' if good is None else 'yes' if good else 'no'} |")
+
+    for size in sizes:
+        label = f"{size}³"
+        a, b = ours(label), ok.get((label, "skimage+skan", 1))
+        r = a["wall"] / b["wall"] if a and b else None
+        add(f"wall ≤ 1.0x skimage+skan at {label}", r, "{:.2f}x", None if r is None else r <= 1.0)
+        k = ok.get((label, "kimimaro", 1))
+        r = k["cpu"] / a["cpu"] if a and k else None
+        add(
+            f"≥ 100x faster than kimimaro (CPU) at {label}",
+            r,
+            "{:.1f}x",
+            None if r is None else r >= 100,
+        )
+        r = a["peak_extra"] / a["foreground"] if a else None
+        add(
+            f"peak memory ≤ 150 B / fg voxel at {label}",
+            r,
+            "{:.0f} B",
+            None if r is None else r <= 150,
+        )
+    for small, big in zip(sizes, sizes[1:]):
+        a, b = ours(f"{small}³"), ours(f"{big}³")
+        factor = (big / small) ** 3
+        r = b["wall"] / a["wall"] if a and b else None
+        add(
+            f"growth {small}³ → {big}³ ≤ {factor * 9 / 8:g}x ({factor:g}x voxels)",
+            r,
+            "{:.1f}x",
+            None if r is None else r <= factor * 9 / 8,
+        )
+    d = ours("damseh_synth2")
+    r = AUTHORS_CPU_SECONDS / d["cpu"] if d else None
+    add(
+        "≥ 300x faster than the authors' 327 CPU-s on damseh_synth2",
+        r,
+        "{:.0f}x",
+        None if r is None else r >= 300,
+    )
+    label = f"{sizes[-1]}³"
+    one, many = ours(label, 1), ours(label)
+    r = one["wall"] / many["wall"] if one and many and threads > 1 else None
+    add(
+        f"speed-up 1 → {threads} threads ≥ 1.7x at {label}",
+        r,
+        "{:.2f}x",
+        None if r is None else r >= 1.7,
+    )
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
-    parser.add_argument("--kimimaro-sizes", type=int, nargs="*", default=[128])
-    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
+    parser.add_argument("--kimimaro-sizes", type=int, nargs="*", default=[128, 256])
+    parser.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=sorted({1, os.cpu_count() or 1}),
+        help="vesselflow thread counts (default: 1 and nproc); peers use the largest",
+    )
     parser.add_argument("--seed", type=int, default=0, help="synthetic bed seed")
     parser.add_argument("--tools", nargs="+", choices=TOOLS, default=list(TOOLS))
     parser.add_argument("--damseh", type=Path, default=DAMSEH, help="damseh_synth2.npz")
-    parser.add_argument("--timeout", type=float, default=3600, help="seconds per child")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "e2e.md")
+    parser.add_argument("--timeout", type=float, default=1800, help="seconds per child")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "performance.md")
     parser.add_argument("--child", choices=TOOLS, help=argparse.SUPPRESS)
     parser.add_argument("--mask", help=argparse.SUPPRESS)
     parser.add_argument("--spacing", type=float, nargs=3, default=[1.0] * 3, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child(args.child, args.mask, tuple(args.spacing), args.threads)
+        child(args.child, args.mask, tuple(args.spacing), args.threads[0])
         return
-    if args.threads < 1:
+    if min(args.threads) < 1:
         parser.error(f"--threads must be at least 1, got {args.threads}")
     if any(s < 16 for s in args.sizes):
         parser.error("--sizes must be at least 16")
+    most = max(args.threads)
 
     sys.path.insert(0, str(HERE))
     from synthetic import describe, write_atomic
 
     from vesselflow.synth import vascular_bed
 
-    rows: list[tuple[str, str, dict]] = []
+    rows: list[Row] = []
     volumes: list[str] = []
+
+    def run(label: str, tool: str, path: Path, spacing: tuple, threads: int) -> None:
+        rows.append((label, tool, threads, run_child(tool, path, spacing, threads, args.timeout)))
+
     with tempfile.TemporaryDirectory() as tmp:
         for size in args.sizes:
             t0 = time.perf_counter()
@@ -379,13 +537,11 @@ def main() -> None:
             for tool in args.tools:
                 if tool == "kimimaro" and size not in args.kimimaro_sizes:
                     continue
-                rows.append(
-                    (
-                        label,
-                        tool,
-                        run_child(tool, path, (1.0,) * 3, args.threads, args.timeout),
-                    )
-                )
+                if tool == "vesselflow":
+                    for threads in sorted(set(args.threads), reverse=True):
+                        run(label, tool, path, (1.0,) * 3, threads)
+                else:
+                    run(label, tool, path, (1.0,) * 3, most if tool == "edt" else 1)
         if "vesselflow" in args.tools:
             label = "damseh_synth2"
             if args.damseh.is_file():
@@ -398,24 +554,29 @@ def main() -> None:
                     f"{spacing}, {np.count_nonzero(d['mask'])} fg voxels"
                 )
                 print(f"{label}:", file=sys.stderr)
-                report = run_child("vesselflow", path, spacing, args.threads, args.timeout)
+                run(label, "vesselflow", path, spacing, most)
             else:
-                report = {"status": "error", "detail": f"{args.damseh} not found"}
-            rows.append((label, "vesselflow", report))
+                rows.append(
+                    (
+                        label,
+                        "vesselflow",
+                        most,
+                        {"status": "error", "detail": f"{args.damseh} not found"},
+                    )
+                )
 
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
-        "# End-to-end benchmark",
+        "# Performance",
         "",
         (
-            f"Generated by `python benches/e2e.py --sizes {' '.join(map(str, args.sizes))} "
-            f"--threads {args.threads}` on {now}."
+            f"Generated by `python benches/performance.py --sizes {' '.join(map(str, args.sizes))} "
+            f"--threads {' '.join(map(str, args.threads))}` on {now}."
         ),
         "",
         (
-            f"Machine: {machine()}. Threads: vesselflow `threads={args.threads}`, edt "
-            f"`parallel={args.threads}`; scikit-image/skan single-threaded; kimimaro "
-            "`parallel=1`."
+            f"Machine: {machine()}. vesselflow at `threads` = {', '.join(map(str, args.threads))}; "
+            f"edt `parallel={most}`; scikit-image/skan single-threaded; kimimaro `parallel=1`."
         ),
         "",
         f"Versions: {versions()}.",
@@ -428,6 +589,12 @@ def main() -> None:
         "Volumes:",
         *volumes,
         "",
+        "## Targets (vesselflow at the most threads)",
+        "",
+        *targets(rows, args.sizes, most),
+        "",
+        "## Every run",
+        "",
         *table(rows),
         "",
         "Peak RSS over mask: the child's peak RSS (`ru_maxrss`) minus its RSS once the",
@@ -436,22 +603,19 @@ def main() -> None:
             "for vesselflow). CPU: user + system seconds of all threads."
         ),
         "",
-        "## Ratios (peer ÷ vesselflow: above 1, vesselflow is faster or leaner)",
+        "## vesselflow's peak memory per stage (over the mask)",
         "",
-        *ratios(rows),
+        *stage_memory(rows),
         "",
-        "## Against the authors' code",
+        "## Thread scaling",
+        "",
+        *scaling(rows),
+        "",
+        f"## Ratios (peer ÷ vesselflow at {most} threads: above 1, vesselflow is faster or leaner)",
+        "",
+        *ratios(rows, most),
         "",
     ]
-    ours = next((r for v, t, r in rows if v == "damseh_synth2" and r["status"] == "ok"), None)
-    if ours is None:
-        lines.append("damseh_synth2 was not run (see the table).")
-    else:
-        lines.append(
-            f"damseh_synth2: vesselflow {ours['cpu']:.2f} CPU-s ({ours['wall']:.2f} s wall) vs "
-            f"the authors' {AUTHORS_CPU_SECONDS:g} CPU-s: "
-            f"{AUTHORS_CPU_SECONDS / ours['cpu']:.0f}x faster (target ≥ {TARGET_SPEEDUP:g}x)."
-        )
     text = "\n".join(lines) + "\n"
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
