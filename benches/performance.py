@@ -232,6 +232,10 @@ def child(tool: str, mask_path: str, spacing: tuple[float, float, float], thread
         return
     wall, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+    # vesselflow's stage tracker resets the high-water mark after every stage, so the
+    # call's peak is the largest stage peak (those are already over the baseline).
+    stage_peaks = result.get("stage_peak_bytes", {}) if isinstance(result, dict) else {}
+    peak = max([peak, *(baseline + v for v in stage_peaks.values())])
     print(
         json.dumps(
             {
