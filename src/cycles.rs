@@ -16,9 +16,8 @@
 //! This hot path is written here rather than taken from petgraph/rustworkx, whose
 //! cycle bases materialise every cycle.
 
-use crate::grid::Csr;
+use crate::grid::{Csr, PerThread};
 use rayon::prelude::*;
-use rustc_hash::FxHashMap;
 use std::collections::VecDeque;
 
 /// A breadth-first spanning forest.
@@ -78,75 +77,117 @@ pub fn vector_area(nodes: &[u32], positions: &[[f64; 3]]) -> f64 {
 /// Nodes a cycle search may visit before it gives up on an edge.
 pub const BALL_LIMIT: usize = 4096;
 
-/// The shortest cycle through the edge `u`–`v` with fewer than `max_nodes` nodes,
-/// as the path `v → … → u` (the edge closes it), if there is one.
-fn shortest_cycle_through(
-    g: &Csr,
-    u: u32,
-    v: u32,
-    max_nodes: usize,
-    parent: &mut FxHashMap<u32, u32>,
-) -> Option<Vec<u32>> {
-    parent.clear();
-    parent.insert(u, u);
-    let mut frontier = vec![u];
-    for _ in 0..max_nodes.saturating_sub(2) {
-        let mut next = vec![];
-        for &a in &frontier {
-            for &b in g.neighbours(a as usize) {
-                if (a == u && b == v) || parent.contains_key(&b) {
-                    continue;
-                }
-                parent.insert(b, a);
-                if b == v {
-                    let mut path = vec![v];
-                    let mut x = v;
-                    while x != u {
-                        x = parent[&x];
-                        path.push(x);
-                    }
-                    return Some(path);
-                }
-                next.push(b);
-            }
-        }
-        if parent.len() > BALL_LIMIT || next.is_empty() {
-            return None;
-        }
-        frontier = next;
+/// Scratch of the breadth-first cycle searches of one worker, reused from search to
+/// search so that a search allocates nothing: a visit stamp and a parent per node
+/// (dense, so a visit is one store and no hashing), the frontiers and the path.
+struct Search {
+    stamp: Vec<u32>,
+    parent: Vec<u32>,
+    now: u32,
+    frontier: Vec<u32>,
+    next: Vec<u32>,
+    path: Vec<u32>,
+}
+
+impl Search {
+    fn new() -> Search {
+        Search { stamp: vec![], parent: vec![], now: 0, frontier: vec![], next: vec![], path: vec![] }
     }
-    None
+
+    /// The shortest cycle through the edge `u`–`v` with fewer than `max_nodes` nodes,
+    /// left in `self.path` as `v → … → u` (the edge closes it); `false` if none.
+    fn shortest_cycle_through(&mut self, g: &Csr, u: u32, v: u32, max_nodes: usize) -> bool {
+        if self.stamp.len() != g.nodes() {
+            (self.stamp, self.parent, self.now) = (vec![0; g.nodes()], vec![0; g.nodes()], 0);
+        }
+        self.now = self.now.wrapping_add(1);
+        if self.now == 0 {
+            self.stamp.fill(0);
+            self.now = 1;
+        }
+        let now = self.now;
+        self.stamp[u as usize] = now;
+        let mut visited = 1;
+        self.frontier.clear();
+        self.frontier.push(u);
+        for _ in 0..max_nodes.saturating_sub(2) {
+            self.next.clear();
+            for &a in &self.frontier {
+                for &b in g.neighbours(a as usize) {
+                    if (a == u && b == v) || self.stamp[b as usize] == now {
+                        continue;
+                    }
+                    self.stamp[b as usize] = now;
+                    self.parent[b as usize] = a;
+                    visited += 1;
+                    if b == v {
+                        self.path.clear();
+                        self.path.push(v);
+                        let mut x = v;
+                        while x != u {
+                            x = self.parent[x as usize];
+                            self.path.push(x);
+                        }
+                        return true;
+                    }
+                    self.next.push(b);
+                }
+            }
+            if visited > BALL_LIMIT || self.next.is_empty() {
+                return false;
+            }
+            std::mem::swap(&mut self.frontier, &mut self.next);
+        }
+        false
+    }
+}
+
+/// Rows per parallel task of the cycle searches (fixed, like every split here).
+const SEARCH_CHUNK: usize = 4096;
+
+/// `f(nodes)` on the shortest cycle through every edge `(u, v)`, `u < v`, outside
+/// the breadth-first forest, if that cycle has fewer than `max_nodes` nodes; the
+/// results in order of the edges. One scratch per worker thread.
+fn map_short_cycles<R: Send>(g: &Csr, max_nodes: usize, f: impl Fn(&[u32]) -> R + Sync) -> Vec<R> {
+    let forest = forest(g);
+    let closing: Vec<(u32, u32)> = (0..g.nodes())
+        .into_par_iter()
+        .flat_map_iter(|u| {
+            let parent = &forest.parent;
+            g.neighbours(u).iter().filter_map(move |&v| {
+                let tree = parent[v as usize] == u as u32 || parent[u] == v;
+                (v as usize > u && !tree).then_some((u as u32, v))
+            })
+        })
+        .collect();
+    drop(forest);
+    let scratch = PerThread::new(Search::new);
+    let parts: Vec<Vec<R>> = closing
+        .par_chunks(SEARCH_CHUNK)
+        .map(|edges| {
+            scratch.with(|s| {
+                let mut out = Vec::new();
+                for &(u, v) in edges {
+                    if s.shortest_cycle_through(g, u, v, max_nodes) {
+                        out.push(f(&s.path));
+                    }
+                }
+                out
+            })
+        })
+        .collect();
+    parts.into_iter().flatten().collect()
 }
 
 /// For every edge `(u, v)`, `u < v`, outside the breadth-first forest, the shortest
 /// cycle through it if that has fewer than `max_nodes` nodes; in order of the edges.
 pub fn short_cycles(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> Vec<Cycle> {
-    let f = forest(g);
-    let closing: Vec<(u32, u32)> = (0..g.nodes())
-        .into_par_iter()
-        .flat_map_iter(|u| {
-            let f = &f;
-            g.neighbours(u).iter().filter_map(move |&v| {
-                let tree = f.parent[v as usize] == u as u32 || f.parent[u] == v;
-                (v as usize > u && !tree).then_some((u as u32, v))
-            })
-        })
-        .collect();
-    closing
-        .par_iter()
-        .map_init(FxHashMap::default, |parent, &(u, v)| {
-            shortest_cycle_through(g, u, v, max_nodes, parent).map(|nodes| {
-                let area = vector_area(&nodes, positions);
-                Cycle { nodes, area }
-            })
-        })
-        .flatten()
-        .collect()
+    map_short_cycles(g, max_nodes, |nodes| Cycle { nodes: nodes.to_vec(), area: vector_area(nodes, positions) })
 }
 
-/// `A_t`: the summed area of the short fundamental cycles.
+/// `A_t`: the summed area of the short fundamental cycles (summed in edge order).
 pub fn short_cycle_area(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> f64 {
-    short_cycles(g, positions, max_nodes).iter().fold(0.0, |acc, c| acc + c.area)
+    map_short_cycles(g, max_nodes, |nodes| vector_area(nodes, positions)).iter().fold(0.0, |acc, a| acc + a)
 }
 
 /// One refinement move (eq. 11): every node of a kept cycle (area below
@@ -226,6 +267,20 @@ mod tests {
         assert!(short_cycles(&g, &p, 10).is_empty());
         let a = short_cycle_area(&g, &p, 13);
         assert!((a - 0.5 * 12.0 * 25.0 * (std::f64::consts::TAU / 12.0).sin()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn every_cross_section_square_of_a_block_is_found() {
+        // A 6-connected 4 x 5 x 6 block: one unit square per closing edge, many
+        // searches per worker (the reused visit stamps must not leak between them).
+        let mask = ndarray::Array3::<u8>::ones((4, 5, 6));
+        let e = crate::volume::edt_squared(mask.view(), [1.0; 3]);
+        let g = crate::grid::build(mask.view(), &e, [1.0; 3], &crate::params::Params::default());
+        let c = short_cycles(&g.graph, &g.positions, 10);
+        assert_eq!(c.len(), g.graph.edges() - g.graph.nodes() + 1);
+        assert!(c.iter().all(|c| c.nodes.len() == 4 && (c.area - 1.0).abs() < 1e-12));
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        assert_eq!(pool.install(|| short_cycles(&g.graph, &g.positions, 10)), c);
     }
 
     #[test]

@@ -8,6 +8,7 @@ use crate::volume::Voxel;
 use ndarray::{ArrayView3, Axis};
 use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
+use std::sync::Mutex;
 
 /// Rows per parallel task when a pass walks the graph row by row. Fixed, so every
 /// parallel reduction is split the same way whatever the thread count.
@@ -102,6 +103,23 @@ pub fn for_row_blocks<T: Send>(offsets: &[usize], data: &mut [T], f: impl Fn(std
         rest = tail;
     }
     parts.into_par_iter().for_each(|(rows, part)| f(rows, part));
+}
+
+/// One scratch value per worker thread of the current rayon pool, lent by thread
+/// index, so a parallel pass can reuse large buffers without allocating per task.
+pub struct PerThread<T>(Vec<Mutex<T>>);
+
+impl<T> PerThread<T> {
+    /// `make()` once per thread of the current pool.
+    pub fn new(make: impl Fn() -> T) -> PerThread<T> {
+        PerThread((0..rayon::current_num_threads()).map(|_| Mutex::new(make())).collect())
+    }
+
+    /// `f` on the calling thread's value.
+    pub fn with<R>(&self, f: impl FnOnce(&mut T) -> R) -> R {
+        let slot = rayon::current_thread_index().unwrap_or(0) % self.0.len();
+        f(&mut self.0[slot].lock().unwrap_or_else(|e| e.into_inner()))
+    }
 }
 
 /// The initial geometric graph: one node per foreground voxel in C order.
@@ -253,16 +271,21 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
     for (a, b) in graph.edge_list() {
         uf.union(a, b);
     }
-    let mut bridges = vec![];
-    for a in 0..n {
-        for o in &all {
-            if let Some(b) = lookup(a, o) {
-                if (b as usize) > a && uf.union(a as u32, b) {
-                    bridges.push((a as u32, b));
-                }
-            }
-        }
-    }
+    // Candidates: 26-neighbour pairs in different graph pieces, found in parallel;
+    // then joined in (a, b) order, as a sequential scan of all pairs would (pairs
+    // already in one piece never bridge, and pieces only grow).
+    let piece: Vec<u32> = (0..n as u32).map(|a| uf.find_mut(a)).collect();
+    let candidates: Vec<(u32, u32)> = (0..n)
+        .into_par_iter()
+        .flat_map_iter(|a| {
+            let piece = &piece;
+            all.iter().filter_map(move |o| {
+                let b = lookup(a, o)?;
+                ((b as usize) > a && piece[a] != piece[b as usize]).then_some((a as u32, b))
+            })
+        })
+        .collect();
+    let bridges: Vec<(u32, u32)> = candidates.into_iter().filter(|&(a, b)| uf.union(a, b)).collect();
     if !bridges.is_empty() {
         let mut edges = graph.edge_list();
         edges.extend(bridges);
