@@ -70,17 +70,24 @@ fn report(
 /// current geometry, the least-squares solve of eq. 8, and decimation, with the time
 /// of each part added to `clock`. Runs on the current rayon pool.
 pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageClock) -> Result<(NodeGraph, SolveStats)> {
-    let twins = clock.time("laplacian", || g.graph.twins());
-    let (ln, lm, skeletal) = clock.time("laplacian", || {
-        (
-            laplacian::l2_norm(&g.graph, &twins, &g.positions),
-            laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight),
-            laplacian::skeletal(&g.graph, &g.positions, p),
-        )
-    });
-    let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
-    let (positions, stats) = clock.time("solve", || solver::contract(&op, &g.positions, p.cg_tol, p.cg_max_iterations));
-    g.positions = positions;
+    let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
+    // The Laplacians (and the twins they are built with) are dropped once the system
+    // is assembled, before the conjugate-gradient vectors are allocated.
+    let (m, r) = {
+        let (ln, lm) = clock.time("laplacian", || {
+            let twins = g.graph.twins();
+            (
+                laplacian::l2_norm(&g.graph, &twins, &g.positions),
+                laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight),
+            )
+        });
+        let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
+        clock.time("solve", || solver::system(&op, &g.positions))
+    };
+    let (d, stats) = clock.time("solve", || solver::solve(&m, r, p.cg_tol, p.cg_max_iterations));
+    drop(m);
+    clock.time("solve", || solver::displace(&mut g.positions, &d));
+    drop(d);
     let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
     Ok((next, stats))
 }

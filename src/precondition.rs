@@ -16,7 +16,7 @@
 //! swept sequentially ignoring its coupling to other blocks (block Jacobi with
 //! symmetric Gauss–Seidel inside), and every reduction sums fixed chunks in order.
 
-use crate::grid::{Csr, ROW_BLOCK};
+use crate::grid::{Csr, PerThread, ROW_BLOCK};
 use crate::solver::NormalOperator;
 use rayon::prelude::*;
 
@@ -26,6 +26,8 @@ type V3 = [f64; 3];
 const CHUNK: usize = 8192;
 /// Fewest rows in a Gauss–Seidel block (thin blocks lose coupling and iterations grow).
 const MIN_BLOCK: usize = 32_768;
+/// Row blocks assembled per parallel wave (a bound on the assembly's scratch).
+const WAVE: usize = 16;
 /// Most Gauss–Seidel blocks: enough to balance a few threads.
 const MAX_BLOCKS: usize = 16;
 
@@ -37,13 +39,36 @@ pub struct NormalMatrix {
     pub offsets: Vec<usize>,
     pub cols: Vec<u32>,
     pub vals: Vec<f32>,
-    /// Position of the diagonal entry of every row in `cols`.
-    pub diag_at: Vec<usize>,
     /// The diagonal `D_j = M_jj` (as stored), positive.
     pub diag: Vec<f64>,
     /// Rows per Gauss–Seidel block (the last block may be shorter): set from the row
-    /// count alone by [`NormalMatrix::assemble`].
-    pub block: usize,
+    /// count alone by [`NormalMatrix::assemble`], changed by [`NormalMatrix::set_block`].
+    block: usize,
+    /// Every row's columns cut at its block: `[b, d, e]` (from the row's start) such that
+    /// `cols[..b]` lie in earlier blocks, `cols[b..d]` are the in-block lower entries,
+    /// `cols[d]` is the diagonal, `cols[d + 1..e]` the in-block upper entries and
+    /// `cols[e..]` lie in later blocks. The sweeps read only the segments they use.
+    bounds: Vec<[u32; 3]>,
+}
+
+/// The absolute segment ends `[start, b, d, e, end]` of row `j`.
+#[inline]
+fn segments(m: &NormalMatrix, j: usize) -> [usize; 5] {
+    let start = m.offsets[j];
+    let [b, d, e] = m.bounds[j];
+    [start, start + b as usize, start + d as usize, start + e as usize, m.offsets[j + 1]]
+}
+
+/// `acc + sum_k m_jk x_k` over the given entries of a row.
+#[inline]
+fn gather(cols: &[u32], vals: &[f32], x: &[V3], mut acc: V3) -> V3 {
+    for (&k, &m) in cols.iter().zip(vals) {
+        let (m, xk) = (m as f64, &x[k as usize]);
+        for c in 0..3 {
+            acc[c] += m * xk[c];
+        }
+    }
+    acc
 }
 
 /// Row `j` of `M`: `M_jk = sum_i (a² Ln_ij Ln_ik + b² Lm_ij Lm_ik) + [j = k] Wg_j²`,
@@ -92,35 +117,39 @@ impl NormalMatrix {
     /// Assemble `M` of `op`.
     pub fn assemble(op: &NormalOperator<'_>) -> NormalMatrix {
         let n = op.graph.nodes();
-        let blocks: Vec<(Vec<usize>, Vec<u32>, Vec<f32>)> = (0..n.div_ceil(ROW_BLOCK))
-            .into_par_iter()
-            .map_init(
-                || vec![0u32; n],
-                |slot, b| {
-                    let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n);
-                    let mut acc = Vec::with_capacity(64);
-                    let (mut lens, mut cols, mut vals) = (Vec::with_capacity(rows.len()), vec![], vec![]);
-                    for j in rows {
-                        row(op, j, &mut acc, slot);
-                        lens.push(acc.len());
-                        cols.extend(acc.iter().map(|e| e.0));
-                        vals.extend(acc.iter().map(|e| e.1 as f32));
-                    }
-                    (lens, cols, vals)
-                },
-            )
-            .collect();
-        let nnz = blocks.iter().map(|b| b.1.len()).sum();
-        let mut offsets = Vec::with_capacity(n + 1);
+        let slots = PerThread::new(|| vec![0u32; n]);
+        let (mut offsets, mut cols, mut vals) = (Vec::with_capacity(n + 1), vec![], vec![]);
         offsets.push(0);
-        let (mut cols, mut vals) = (Vec::with_capacity(nnz), Vec::with_capacity(nnz));
-        for (lens, c, v) in blocks {
-            for l in lens {
-                offsets.push(offsets[offsets.len() - 1] + l);
+        // Row blocks are built in parallel a wave at a time and appended in order, so
+        // at most one wave of rows exists twice.
+        let blocks: Vec<usize> = (0..n.div_ceil(ROW_BLOCK)).collect();
+        for wave in blocks.chunks(WAVE) {
+            let parts: Vec<(Vec<usize>, Vec<u32>, Vec<f32>)> = wave
+                .par_iter()
+                .map(|&b| {
+                    slots.with(|slot| {
+                        let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n);
+                        let mut acc = Vec::with_capacity(64);
+                        let (mut lens, mut cols, mut vals) = (Vec::with_capacity(rows.len()), vec![], vec![]);
+                        for j in rows {
+                            row(op, j, &mut acc, slot);
+                            lens.push(acc.len());
+                            cols.extend(acc.iter().map(|e| e.0));
+                            vals.extend(acc.iter().map(|e| e.1 as f32));
+                        }
+                        (lens, cols, vals)
+                    })
+                })
+                .collect();
+            for (lens, c, v) in parts {
+                for l in lens {
+                    offsets.push(offsets[offsets.len() - 1] + l);
+                }
+                cols.extend(c);
+                vals.extend(v);
             }
-            cols.extend(c);
-            vals.extend(v);
         }
+        drop(slots);
         let diag_at: Vec<usize> = (0..n)
             .into_par_iter()
             .map(|j| {
@@ -137,8 +166,29 @@ impl NormalMatrix {
             }
         }
         let diag = diag_at.iter().map(|&d| vals[d] as f64).collect();
-        let block = n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK);
-        NormalMatrix { offsets, cols, vals, diag_at, diag, block }
+        drop(diag_at);
+        let mut m = NormalMatrix { offsets, cols, vals, diag, block: 0, bounds: vec![] };
+        m.set_block(n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK));
+        m
+    }
+
+    /// Rows per Gauss–Seidel block.
+    pub fn block(&self) -> usize {
+        self.block
+    }
+
+    /// Use Gauss–Seidel blocks of `rows` rows (at least 1).
+    pub fn set_block(&mut self, rows: usize) {
+        let bs = rows.max(1);
+        self.block = bs;
+        self.bounds = (0..self.rows())
+            .into_par_iter()
+            .map(|j| {
+                let (lo, hi) = ((j / bs * bs) as u32, ((j / bs + 1) * bs) as u32);
+                let r = &self.cols[self.offsets[j]..self.offsets[j + 1]];
+                [lo, j as u32, hi].map(|x| r.partition_point(|&k| k < x) as u32)
+            })
+            .collect();
     }
 
     /// Number of rows.
@@ -184,7 +234,7 @@ impl NormalMatrix {
     /// [`NormalMatrix::backward`], [`NormalMatrix::forward_product`]); this explicit
     /// form is the reference its tests check against.
     pub fn sgs_dot(&self, r: &[V3], z: &mut [V3]) -> V3 {
-        let bs = self.block.max(1);
+        let bs = self.block;
         let parts: Vec<V3> = z
             .par_chunks_mut(bs)
             .enumerate()
@@ -193,36 +243,16 @@ impl NormalMatrix {
                 let hi = lo + zs.len();
                 // Forward: (D + L) y = r.
                 for j in lo..hi {
-                    let mut s = r[j];
-                    let dj = self.diag_at[j];
-                    let start = self.offsets[j];
-                    for (&k, &m) in self.cols[start..dj].iter().zip(&self.vals[start..dj]) {
-                        let k = k as usize;
-                        if k >= lo {
-                            let (m, yk) = (m as f64, &zs[k - lo]);
-                            for c in 0..3 {
-                                s[c] -= m * yk[c];
-                            }
-                        }
-                    }
+                    let [_, b, d, _, _] = segments(self, j);
+                    let s = gather_local(&self.cols[b..d], &self.vals[b..d], zs, lo, r[j], -1.0);
                     let inv = 1.0 / self.diag[j];
                     zs[j - lo] = [s[0] * inv, s[1] * inv, s[2] * inv];
                 }
                 // Backward: (D + U) z = D y, i.e. z_j = y_j - (U z)_j / D_j.
                 let mut dot = [0.0; 3];
                 for j in (lo..hi).rev() {
-                    let dj = self.diag_at[j];
-                    let mut s = [0.0; 3];
-                    let end = self.offsets[j + 1];
-                    for (&k, &m) in self.cols[dj + 1..end].iter().zip(&self.vals[dj + 1..end]) {
-                        let k = k as usize;
-                        if k < hi {
-                            let (m, zk) = (m as f64, &zs[k - lo]);
-                            for c in 0..3 {
-                                s[c] += m * zk[c];
-                            }
-                        }
-                    }
+                    let [_, _, d, e, _] = segments(self, j);
+                    let s = gather_local(&self.cols[d + 1..e], &self.vals[d + 1..e], zs, lo, [0.0; 3], 1.0);
                     let inv = 1.0 / self.diag[j];
                     let zj = &mut zs[j - lo];
                     for c in 0..3 {
@@ -238,21 +268,12 @@ impl NormalMatrix {
 
     /// `y = (D + L)⁻¹ r` (block lower triangular solve).
     pub fn forward(&self, r: &[V3], y: &mut [V3]) {
-        let bs = self.block.max(1);
+        let bs = self.block;
         y.par_chunks_mut(bs).enumerate().for_each(|(b, ys)| {
             let lo = b * bs;
             for j in lo..lo + ys.len() {
-                let mut t = r[j];
-                let (start, dj) = (self.offsets[j], self.diag_at[j]);
-                for (&k, &m) in self.cols[start..dj].iter().zip(&self.vals[start..dj]) {
-                    let k = k as usize;
-                    if k >= lo {
-                        let (m, yk) = (m as f64, &ys[k - lo]);
-                        for c in 0..3 {
-                            t[c] -= m * yk[c];
-                        }
-                    }
-                }
+                let [_, b, d, _, _] = segments(self, j);
+                let t = gather_local(&self.cols[b..d], &self.vals[b..d], ys, lo, r[j], -1.0);
                 let inv = 1.0 / self.diag[j];
                 ys[j - lo] = [t[0] * inv, t[1] * inv, t[2] * inv];
             }
@@ -263,7 +284,7 @@ impl NormalMatrix {
     /// triangular solve), so that `s = z + beta s_old` for the Gauss–Seidel `z` of the
     /// residual whose forward solve is `y`.
     pub fn backward(&self, y: &[V3], beta: V3, hat: &mut [V3], s: &mut [V3]) {
-        let bs = self.block.max(1);
+        let bs = self.block;
         hat.par_chunks_mut(bs).zip(s.par_chunks_mut(bs)).enumerate().for_each(|(b, (hs, ss))| {
             let lo = b * bs;
             let hi = lo + ss.len();
@@ -273,17 +294,8 @@ impl NormalMatrix {
                 for c in 0..3 {
                     h[c] = dj * y[j][c] + beta[c] * h[c];
                 }
-                let mut t = *h;
-                let (d, end) = (self.diag_at[j], self.offsets[j + 1]);
-                for (&k, &m) in self.cols[d + 1..end].iter().zip(&self.vals[d + 1..end]) {
-                    let k = k as usize;
-                    if k < hi {
-                        let (m, sk) = (m as f64, &ss[k - lo]);
-                        for c in 0..3 {
-                            t[c] -= m * sk[c];
-                        }
-                    }
-                }
+                let [_, _, d, e, _] = segments(self, j);
+                let t = gather_local(&self.cols[d + 1..e], &self.vals[d + 1..e], ss, lo, *h, -1.0);
                 let inv = 1.0 / dj;
                 ss[j - lo] = [t[0] * inv, t[1] * inv, t[2] * inv];
             }
@@ -295,7 +307,7 @@ impl NormalMatrix {
     /// blocks), `w = (D + L)⁻¹ q` and `y = (D + L)⁻¹ r`. Returns `s · q` per
     /// coordinate, summed per block in order.
     pub fn forward_product(&self, hat: &[V3], s: &[V3], r: &[V3], q: &mut [V3], w: &mut [V3], y: &mut [V3]) -> V3 {
-        let bs = self.block.max(1);
+        let bs = self.block;
         let parts: Vec<V3> = q
             .par_chunks_mut(bs)
             .zip(w.par_chunks_mut(bs))
@@ -303,34 +315,21 @@ impl NormalMatrix {
             .enumerate()
             .map(|(b, ((qs, ws), ys))| {
                 let lo = b * bs;
-                let hi = lo + qs.len();
                 let mut dot = [0.0; 3];
-                for j in lo..hi {
-                    let (mut qj, mut wj, mut yj) = (hat[j], [0.0; 3], r[j]);
-                    let (start, d, end) = (self.offsets[j], self.diag_at[j], self.offsets[j + 1]);
-                    for (&k, &m) in self.cols[start..d].iter().zip(&self.vals[start..d]) {
+                for j in lo..lo + qs.len() {
+                    let [start, b, d, e, end] = segments(self, j);
+                    let mut qj = gather(&self.cols[start..b], &self.vals[start..b], s, hat[j]);
+                    let (mut wj, mut yj) = ([0.0; 3], r[j]);
+                    for (&k, &m) in self.cols[b..d].iter().zip(&self.vals[b..d]) {
                         let (k, m) = (k as usize, m as f64);
-                        let sk = &s[k];
+                        let (sk, wk, yk) = (&s[k], &ws[k - lo], &ys[k - lo]);
                         for c in 0..3 {
                             qj[c] += m * sk[c];
-                        }
-                        if k >= lo {
-                            let (wk, yk) = (&ws[k - lo], &ys[k - lo]);
-                            for c in 0..3 {
-                                wj[c] += m * wk[c];
-                                yj[c] -= m * yk[c];
-                            }
+                            wj[c] += m * wk[c];
+                            yj[c] -= m * yk[c];
                         }
                     }
-                    for (&k, &m) in self.cols[d + 1..end].iter().zip(&self.vals[d + 1..end]) {
-                        let k = k as usize;
-                        if k >= hi {
-                            let (m, sk) = (m as f64, &s[k]);
-                            for c in 0..3 {
-                                qj[c] += m * sk[c];
-                            }
-                        }
-                    }
+                    let qj = gather(&self.cols[e..end], &self.vals[e..end], s, qj);
                     let inv = 1.0 / self.diag[j];
                     for c in 0..3 {
                         wj[c] = (qj[c] - wj[c]) * inv;
@@ -344,4 +343,16 @@ impl NormalMatrix {
             .collect();
         parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
     }
+}
+
+/// `acc + sign * sum_k m_jk x_k` over entries in a block whose values `x` start at row `lo`.
+#[inline]
+fn gather_local(cols: &[u32], vals: &[f32], x: &[V3], lo: usize, mut acc: V3, sign: f64) -> V3 {
+    for (&k, &m) in cols.iter().zip(vals) {
+        let (m, xk) = (m as f64, &x[k as usize - lo]);
+        for c in 0..3 {
+            acc[c] += sign * (m * xk[c]);
+        }
+    }
+    acc
 }

@@ -164,11 +164,10 @@ pub struct SolveStats {
     pub converged: bool,
 }
 
-/// New positions `P'` of eq. 8: `P + D` with `M D = -(alpha² LnᵀLn + beta² LmᵀLm) P`,
-/// solved to `|r| <= tol |r_0|` per coordinate, at most `max_iterations` iterations,
-/// by conjugate gradients on the assembled `M` preconditioned by block symmetric
-/// Gauss–Seidel ([`NormalMatrix::sgs_dot`]).
-pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
+/// The system of eq. 8 for the displacement `D = P' - P`: the assembled `M` and the
+/// right-hand side `-(alpha² LnᵀLn + beta² LmᵀLm) P`. Once they are built the
+/// Laplacians are no longer needed, so a caller can free them before [`solve`].
+pub fn system(op: &NormalOperator<'_>, positions: &[V3]) -> (NormalMatrix, Vec<V3>) {
     let n = positions.len();
     // r0 = b - M·0 = -(a² LnᵀLn + b² LmᵀLm) P = -(M P - Wg² P), matrix-free: the
     // Laplacians' rows sum to zero, so this is translation-invariant.
@@ -183,9 +182,23 @@ pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterati
             ri[c] = -(ri[c] - w2 * p[c]);
         }
     });
-    let m = NormalMatrix::assemble(op);
+    (NormalMatrix::assemble(op), r)
+}
+
+/// `positions += d`.
+pub fn displace(positions: &mut [V3], d: &[V3]) {
+    positions.par_iter_mut().zip(d.par_iter()).for_each(|(p, d)| *p = [p[0] + d[0], p[1] + d[1], p[2] + d[2]]);
+}
+
+/// New positions `P'` of eq. 8: `P + D` with `M D = -(alpha² LnᵀLn + beta² LmᵀLm) P`,
+/// solved to `|r| <= tol |r_0|` per coordinate, at most `max_iterations` iterations,
+/// by conjugate gradients on the assembled `M` preconditioned by block symmetric
+/// Gauss–Seidel ([`NormalMatrix::sgs_dot`]): [`system`], [`solve`], [`displace`].
+pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
+    let (m, r) = system(op, positions);
     let (d, stats) = solve(&m, r, tol, max_iterations);
-    let out = positions.par_iter().zip(d.par_iter()).map(|(p, d)| [p[0] + d[0], p[1] + d[1], p[2] + d[2]]).collect();
+    let mut out = positions.to_vec();
+    displace(&mut out, &d);
     (out, stats)
 }
 
@@ -472,7 +485,7 @@ mod tests {
         let mut m = NormalMatrix::assemble(&pb.op());
         let n = pb.p.len();
         for bs in [n, 50, 17] {
-            m.block = bs;
+            m.set_block(bs);
             for seed in 0..5 {
                 let (u, v) = (noise(n, 2 * seed), noise(n, 2 * seed + 1));
                 let (mut bu, mut bv) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
@@ -531,7 +544,7 @@ mod tests {
         let mut m = NormalMatrix::assemble(&pb.op());
         let b = pb.rhs();
         for bs in [m.rows(), 64, 25] {
-            m.block = bs;
+            m.set_block(bs);
             let (want, k) = explicit_pcg(&m, &b, 1e-10, 500);
             let (got, stats) = solve(&m, b.clone(), 1e-10, 500);
             assert!(stats.converged);
@@ -550,7 +563,7 @@ mod tests {
     fn solve_matches_a_dense_solve_of_the_assembled_matrix() {
         let pb = block(3, 4, 5);
         let mut m = NormalMatrix::assemble(&pb.op());
-        m.block = 13;
+        m.set_block(13);
         let n = m.rows();
         let mut dense_m = vec![vec![0.0; n]; n];
         for j in 0..n {
@@ -576,7 +589,7 @@ mod tests {
                 None => contract(&pb.op(), &pb.p, 1e-8, 500),
                 Some(bs) => {
                     let mut m = NormalMatrix::assemble(&pb.op());
-                    m.block = bs;
+                    m.set_block(bs);
                     solve(&m, pb.rhs(), 1e-8, 500)
                 }
             })
