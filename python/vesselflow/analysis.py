@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.cluster.hierarchy import DisjointSet
 
 from vesselflow.graph import VesselGraph
 
@@ -79,19 +80,11 @@ def _trace(n_nodes: int, edges: NDArray[np.int64]) -> list[_Branch]:
 
 def _components(branches: list[_Branch]) -> list[int]:
     """Connected component of every branch, numbered in order of first appearance."""
-    parent: dict[int, int] = {}
-
-    def root(x: int) -> int:
-        parent.setdefault(x, x)
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
+    joined = DisjointSet(n for b in branches for n in (b.nodes[0], b.nodes[-1]))
     for b in branches:
-        parent[root(b.nodes[0])] = root(b.nodes[-1])
+        joined.merge(b.nodes[0], b.nodes[-1])
     labels: dict[int, int] = {}
-    return [labels.setdefault(root(b.nodes[0]), len(labels)) for b in branches]
+    return [labels.setdefault(joined[b.nodes[0]], len(labels)) for b in branches]
 
 
 def _segments(

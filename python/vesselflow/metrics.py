@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
+from scipy.cluster.hierarchy import DisjointSet
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
@@ -235,15 +236,7 @@ def _reduced_core_edges(branches: list[tuple[int, int]], label: dict[int, int]) 
     labels ``s_0 <= s_1 <= ... <= s_k`` gives the ``k`` edges ``(s_0, s_i)`` (a star on the
     smallest label), so a path through unmatched junctions still connects its matched ends.
     """
-    parent: dict[int, int] = {}
-
-    def root(x: int) -> int:
-        parent.setdefault(x, x)
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
+    unmatched = DisjointSet(n for uv in branches for n in uv if n not in label)
     edges: Counter[Any] = Counter()
     attach: list[tuple[int, int]] = []
     for u, v in branches:
@@ -255,10 +248,10 @@ def _reduced_core_edges(branches: list[tuple[int, int]], label: dict[int, int]) 
         elif lv is not None:
             attach.append((u, lv))
         else:
-            parent[root(u)] = root(v)
+            unmatched.merge(u, v)
     clusters: dict[int, list[int]] = {}
     for node, lab in attach:
-        clusters.setdefault(root(node), []).append(lab)
+        clusters.setdefault(unmatched[node], []).append(lab)
     for labs in clusters.values():
         labs.sort()
         for other in labs[1:]:
