@@ -665,7 +665,7 @@ SWEEP: tuple[tuple[str, dict[str, Any]], ...] = (
     ("radius_correction=0.25", {"radius_correction": 0.25}),
     ("radius_correction=0.75", {"radius_correction": 0.75}),
     ("radius_correction=1.0", {"radius_correction": 1.0}),
-    ("cg_tol=1e-4", {"cg_tol": 1e-4}),
+    ("cg_tol=1e-6 (METHOD.md)", {"cg_tol": 1e-6}),
     ("cg_tol=1e-3", {"cg_tol": 1e-3}),
 )
 SWEEP_COLUMNS = ("gfnr", "gfpr", "cfnr", "cfpr", "diadem", "mape", "iterations", "seconds")

@@ -97,7 +97,7 @@ class Skeletonizer:
         alpha: float = 0.25,
         beta: float = 0.5,
         gamma: float = 0.05,
-        cg_tol: float = 1e-6,
+        cg_tol: float = 1e-4,
         cg_max_iterations: int = 2000,
         max_cycle_nodes: int = 10,
         stop_ratio: float = 1e-3,

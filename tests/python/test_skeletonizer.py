@@ -27,7 +27,7 @@ def test_core_lists_every_method_parameter_with_its_default():
         "alpha": 0.25,
         "beta": 0.5,
         "gamma": 0.05,
-        "cg_tol": 1e-6,
+        "cg_tol": 1e-4,
         "cg_max_iterations": 2000,
         "max_cycle_nodes": 10,
         "stop_ratio": 1e-3,
