@@ -23,7 +23,7 @@ Then vesselflow alone on ``damseh_synth2`` (../shared/data), whose CPU-seconds a
 against the 327 CPU-seconds the authors' Python code took on it.
 
 Each child reports wall seconds, CPU seconds (user + system, all threads), and its peak
-RSS (``ru_maxrss`` read after the work; the high-water mark is reset through
+RSS (``VmHWM`` read after the work; the high-water mark is reset through
 ``/proc/self/clear_refs`` once the mask is loaded) minus its RSS at that moment: the memory
 the method itself needed, also given per foreground voxel. A peer whose package is missing
 gets a "not installed" row and the run goes on. The report (the issue's targets measured,
@@ -115,7 +115,7 @@ class _StagePeaks:
 
 
 def _reset_peak_rss() -> None:
-    """Make ``ru_maxrss`` forget peaks before now (Linux >= 4.0), e.g. the imports'.
+    """Make ``VmHWM`` forget peaks before now (Linux >= 4.0), e.g. the imports'.
 
     Without it a transient peak while importing could hide the work's own peak.
     """
@@ -231,7 +231,9 @@ def child(tool: str, mask_path: str, spacing: tuple[float, float, float], thread
         print(json.dumps({"status": "error", "detail": f"{type(e).__name__}: {e}"}))
         return
     wall, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+    # VmHWM, not ru_maxrss: Linux carries ru_maxrss over exec from the forked parent, so
+    # it would report this bench's own footprint whenever that is the larger.
+    peak = _status_bytes("VmHWM")
     # vesselflow's stage tracker resets the high-water mark after every stage, so the
     # call's peak is the largest stage peak (those are already over the baseline).
     stage_peaks = result.get("stage_peak_bytes", {}) if isinstance(result, dict) else {}
@@ -601,7 +603,7 @@ def main() -> None:
         "",
         *table(rows),
         "",
-        "Peak RSS over mask: the child's peak RSS (`ru_maxrss`) minus its RSS once the",
+        "Peak RSS over mask: the child's peak RSS (`VmHWM`) minus its RSS once the",
         (
             f"mask was loaded (target ≤ {TARGET_BYTES_PER_VOXEL:g} B per foreground voxel "
             "for vesselflow). CPU: user + system seconds of all threads."
