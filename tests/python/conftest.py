@@ -12,6 +12,12 @@ def make_tube(shape: tuple[int, int, int] = (30, 15, 15), radius: float = 4.0) -
     return (j - (shape[1] - 1) / 2) ** 2 + (k - (shape[2] - 1) / 2) ** 2 <= radius**2
 
 
+def make_slow_tube() -> np.ndarray:
+    """A thick tube with about 4 s of work on 2 cores: a signal sent at the first
+    progress report lands mid-run even on a loaded machine (0.4 s was not enough)."""
+    return make_tube((400, 41, 41), 14.0)
+
+
 @pytest.fixture
 def tube() -> np.ndarray:
     """A straight tube of radius 4 along axis 0, shape (30, 15, 15)."""

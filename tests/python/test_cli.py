@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import vesselflow
-from conftest import make_tube
+from conftest import make_slow_tube
 from vesselflow import _core, load_graph
 
 
@@ -77,9 +77,7 @@ def test_bad_command_line_exits_2_with_a_one_line_error(tmp_path):
 
 @pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX signals")
 def test_ctrl_c_stops_the_console_program_without_output(tmp_path):
-    # About 4 s of work (2 cores), so the run is still going when the signal arrives even
-    # on a loaded machine; the run stops at once, so the test itself stays short.
-    np.save(tmp_path / "mask.npy", make_tube((400, 41, 41), 14.0))
+    np.save(tmp_path / "mask.npy", make_slow_tube())
     out = tmp_path / "graph.json"
     argv = [sys.executable, "-m", "vesselflow", "skeletonize", str(tmp_path / "mask.npy")]
     with subprocess.Popen(

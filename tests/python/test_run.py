@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import vesselflow
-from conftest import make_tube
+from conftest import make_slow_tube, make_tube
 from vesselflow import _core
 
 
@@ -240,7 +240,7 @@ def test_signal_interrupts_a_run_with_the_gil_released():
     def handler(signum, frame):
         raise Interrupted
 
-    mask = make_tube((120, 31, 31), 9.0)  # a few seconds of work
+    mask = make_slow_tube()
     started = threading.Event()
     stages = []
 
