@@ -13,8 +13,8 @@ def make_tube(shape: tuple[int, int, int] = (30, 15, 15), radius: float = 4.0) -
 
 
 def make_slow_tube() -> np.ndarray:
-    """A thick tube with about 4 s of work on 2 cores: a signal sent at the first
-    progress report lands mid-run even on a loaded machine (0.4 s was not enough)."""
+    """A thick tube with about 4 s of work on 2 cores, so that a signal sent at the
+    first progress report lands mid-run even on a loaded machine."""
     return make_tube((400, 41, 41), 14.0)
 
 

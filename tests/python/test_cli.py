@@ -80,8 +80,14 @@ def test_ctrl_c_stops_the_console_program_without_output(tmp_path):
     np.save(tmp_path / "mask.npy", make_slow_tube())
     out = tmp_path / "graph.json"
     argv = [sys.executable, "-m", "vesselflow", "skeletonize", str(tmp_path / "mask.npy")]
+    # The child gets SIGINT's default action, as in a terminal: a test runner started in
+    # the background of a non-interactive shell has it ignored, and that is inherited.
     with subprocess.Popen(
-        [*argv, "-o", str(out)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True
+        [*argv, "-o", str(out)],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     ) as proc:
         assert proc.stderr is not None
         first = proc.stderr.readline()  # the first progress report: the run has begun
