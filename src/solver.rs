@@ -168,9 +168,15 @@ pub struct SolveStats {
 /// right-hand side `-(alpha² LnᵀLn + beta² LmᵀLm) P`. Once they are built the
 /// Laplacians are no longer needed, so a caller can free them before [`solve`].
 pub fn system(op: &NormalOperator<'_>, positions: &[V3]) -> (NormalMatrix, Vec<V3>) {
+    let r = rhs(op, positions);
+    (NormalMatrix::assemble(op), r)
+}
+
+/// The right-hand side for the displacement, `r0 = b - M·0 = -(a² LnᵀLn + b² LmᵀLm) P
+/// = -(M P - Wg² P)`, matrix-free: the Laplacians' rows sum to zero, so this is
+/// translation-invariant.
+fn rhs(op: &NormalOperator<'_>, positions: &[V3]) -> Vec<V3> {
     let n = positions.len();
-    // r0 = b - M·0 = -(a² LnᵀLn + b² LmᵀLm) P = -(M P - Wg² P), matrix-free: the
-    // Laplacians' rows sum to zero, so this is translation-invariant.
     let mut r = vec![[0.0; 3]; n];
     {
         let mut un = vec![[0.0; 3]; n];
@@ -182,7 +188,7 @@ pub fn system(op: &NormalOperator<'_>, positions: &[V3]) -> (NormalMatrix, Vec<V
             ri[c] = -(ri[c] - w2 * p[c]);
         }
     });
-    (NormalMatrix::assemble(op), r)
+    r
 }
 
 /// `positions += d`.
@@ -365,11 +371,7 @@ mod tests {
 
         /// The right-hand side `-(M - Wg²) P` of the displacement system.
         fn rhs(&self) -> Vec<V3> {
-            let op = self.op();
-            let n = self.p.len();
-            let (mut r, mut un, mut um) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
-            op.apply(&self.p, &mut r, &mut un, &mut um);
-            (0..n).map(|i| std::array::from_fn(|c| -(r[i][c] - op.anchor2[i] * self.p[i][c]))).collect()
+            super::rhs(&self.op(), &self.p)
         }
     }
 
@@ -626,14 +628,7 @@ mod reference {
         let n = positions.len();
         let mut un = vec![[0.0; 3]; n];
         let mut um = vec![[0.0; 3]; n];
-        // r0 = b - M·0 = -(a² LnᵀLn + b² LmᵀLm) P = -(M P - Wg² P).
-        let mut r = vec![[0.0; 3]; n];
-        op.apply(positions, &mut r, &mut un, &mut um);
-        r.par_iter_mut().zip(positions.par_iter()).zip(op.anchor2.par_iter()).for_each(|((ri, p), w2)| {
-            for c in 0..3 {
-                ri[c] = -(ri[c] - w2 * p[c]);
-            }
-        });
+        let mut r = super::rhs(op, positions);
         let inv_diag: Vec<f64> = op.diagonal().into_par_iter().map(|d| 1.0 / d).collect();
         let mut d = vec![[0.0; 3]; n];
         let precondition = |r: &[V3], z: &mut [V3]| {
