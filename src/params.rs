@@ -108,7 +108,9 @@ pub struct Params {
     pub beta: f64,
     /// Anchoring weight (speed of the flow: lower = faster, coarser).
     pub gamma: f64,
-    /// Relative residual at which conjugate gradients stop. 1e-4, not METHOD.md's 1e-6:
+    /// Relative residual at which conjugate gradients stop, measured in the
+    /// preconditioner's norm (`sqrt(r · B r)`, B the Gauss–Seidel preconditioner, against
+    /// its value at the start). 1e-4, not METHOD.md's 1e-6:
     /// the fidelity sweep scores them alike (`benches/results/sensitivity.md`) and 1e-4
     /// needs about 40 % fewer CG iterations.
     pub cg_tol: f64,

@@ -280,68 +280,107 @@ impl NormalMatrix {
         });
     }
 
-    /// Eisenstat's first half: `ŝ ← D y + beta ŝ`, then `s = (D + U)⁻¹ ŝ` (block upper
-    /// triangular solve), so that `s = z + beta s_old` for the Gauss–Seidel `z` of the
-    /// residual whose forward solve is `y`.
-    pub fn backward(&self, y: &[V3], beta: V3, hat: &mut [V3], s: &mut [V3]) {
+    /// Eisenstat's first half, with the previous iteration's update folded in: per row
+    /// `x += step s`, `y -= step w` (the new residual's forward solve), `ŝ ← D y + beta ŝ`,
+    /// then `s = (D + U)⁻¹ ŝ` (block upper triangular solve), so that `s = z + beta s_old`
+    /// for the Gauss–Seidel `z` of the new residual.
+    pub fn backward(&self, k: &mut Krylov, step: V3, beta: V3) {
         let bs = self.block;
-        hat.par_chunks_mut(bs).zip(s.par_chunks_mut(bs)).enumerate().for_each(|(b, (hs, ss))| {
-            let lo = b * bs;
-            let hi = lo + ss.len();
-            for j in (lo..hi).rev() {
-                let h = &mut hs[j - lo];
-                let dj = self.diag[j];
-                for c in 0..3 {
-                    h[c] = dj * y[j][c] + beta[c] * h[c];
+        let Krylov { x, y, hat, s, w } = k;
+        x.par_chunks_mut(bs)
+            .zip(y.par_chunks_mut(bs))
+            .zip(hat.par_chunks_mut(bs).zip(s.par_chunks_mut(bs)))
+            .zip(w.par_chunks(bs))
+            .enumerate()
+            .for_each(|(b, (((xs, ys), (hs, ss)), ws))| {
+                let lo = b * bs;
+                for j in (lo..lo + ss.len()).rev() {
+                    let t = j - lo;
+                    let dj = self.diag[j];
+                    for c in 0..3 {
+                        xs[t][c] += step[c] * ss[t][c];
+                        ys[t][c] -= step[c] * ws[t][c];
+                        hs[t][c] = dj * ys[t][c] + beta[c] * hs[t][c];
+                    }
+                    let [_, _, d, e, _] = segments(self, j);
+                    let u = gather_local(&self.cols[d + 1..e], &self.vals[d + 1..e], ss, lo, hs[t], -1.0);
+                    let inv = 1.0 / dj;
+                    ss[t] = [u[0] * inv, u[1] * inv, u[2] * inv];
                 }
-                let [_, _, d, e, _] = segments(self, j);
-                let t = gather_local(&self.cols[d + 1..e], &self.vals[d + 1..e], ss, lo, *h, -1.0);
-                let inv = 1.0 / dj;
-                ss[j - lo] = [t[0] * inv, t[1] * inv, t[2] * inv];
-            }
-        });
+            });
     }
 
     /// Eisenstat's second half, one pass over the lower and off-block entries:
     /// `q = M s = ŝ + (L + E) s` (with `(D + U) s = ŝ`, `E` the entries outside the
-    /// blocks), `w = (D + L)⁻¹ q` and `y = (D + L)⁻¹ r`. Returns `s · q` per
-    /// coordinate, summed per block in order.
-    pub fn forward_product(&self, hat: &[V3], s: &[V3], r: &[V3], q: &mut [V3], w: &mut [V3], y: &mut [V3]) -> V3 {
+    /// blocks) and `w = (D + L)⁻¹ q`, without storing `q`. Returns, per coordinate and
+    /// summed per block in order, `[s · q, y · D y, w · D y, w · D w]`: the step's
+    /// denominator, `r · z` of the current residual, and what `r · z` of the next one
+    /// (forward solve `y - step w`) needs.
+    pub fn forward_product(&self, k: &mut Krylov) -> [V3; 4] {
         let bs = self.block;
-        let parts: Vec<V3> = q
+        let Krylov { y, hat, s, w, .. } = k;
+        let (y, hat, s) = (&*y, &*hat, &*s);
+        let parts: Vec<[V3; 4]> = w
             .par_chunks_mut(bs)
-            .zip(w.par_chunks_mut(bs))
-            .zip(y.par_chunks_mut(bs))
             .enumerate()
-            .map(|(b, ((qs, ws), ys))| {
+            .map(|(b, ws)| {
                 let lo = b * bs;
-                let mut dot = [0.0; 3];
-                for j in lo..lo + qs.len() {
+                let mut dots = [[0.0; 3]; 4];
+                for j in lo..lo + ws.len() {
                     let [start, b, d, e, end] = segments(self, j);
                     let mut qj = gather(&self.cols[start..b], &self.vals[start..b], s, hat[j]);
-                    let (mut wj, mut yj) = ([0.0; 3], r[j]);
+                    let mut wj = [0.0; 3];
                     for (&k, &m) in self.cols[b..d].iter().zip(&self.vals[b..d]) {
                         let (k, m) = (k as usize, m as f64);
-                        let (sk, wk, yk) = (&s[k], &ws[k - lo], &ys[k - lo]);
+                        let (sk, wk) = (&s[k], &ws[k - lo]);
                         for c in 0..3 {
                             qj[c] += m * sk[c];
                             wj[c] += m * wk[c];
-                            yj[c] -= m * yk[c];
                         }
                     }
                     let qj = gather(&self.cols[e..end], &self.vals[e..end], s, qj);
-                    let inv = 1.0 / self.diag[j];
+                    let dj = self.diag[j];
+                    let inv = 1.0 / dj;
                     for c in 0..3 {
                         wj[c] = (qj[c] - wj[c]) * inv;
-                        yj[c] *= inv;
-                        dot[c] += s[j][c] * qj[c];
+                        let (dy, dw) = (dj * y[j][c], dj * wj[c]);
+                        dots[0][c] += s[j][c] * qj[c];
+                        dots[1][c] += dy * y[j][c];
+                        dots[2][c] += dw * y[j][c];
+                        dots[3][c] += dw * wj[c];
                     }
-                    (qs[j - lo], ws[j - lo], ys[j - lo]) = (qj, wj, yj);
+                    ws[j - lo] = wj;
                 }
-                dot
+                dots
             })
             .collect();
-        parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
+        parts.iter().fold([[0.0; 3]; 4], |a, p| std::array::from_fn(|t| std::array::from_fn(|c| a[t][c] + p[t][c])))
+    }
+}
+
+/// The vectors of the preconditioned conjugate-gradient iteration in Eisenstat's form,
+/// one entry per row of `M`.
+pub struct Krylov {
+    /// The solution so far.
+    pub x: Vec<V3>,
+    /// `y = (D + L)⁻¹ r` of the current residual `r` (so `r · z = y · D y`).
+    pub y: Vec<V3>,
+    /// `ŝ = (D + U) s`.
+    pub hat: Vec<V3>,
+    /// The search direction `s`.
+    pub s: Vec<V3>,
+    /// `w = (D + L)⁻¹ M s`.
+    pub w: Vec<V3>,
+}
+
+impl Krylov {
+    /// The state at `x = 0` for the right-hand side `r`: `y = (D + L)⁻¹ r`, the rest zero.
+    pub fn start(m: &NormalMatrix, r: &[V3]) -> Krylov {
+        let n = r.len();
+        let mut y = vec![[0.0; 3]; n];
+        m.forward(r, &mut y);
+        let zero = || vec![[0.0; 3]; n];
+        Krylov { x: zero(), y, hat: zero(), s: zero(), w: zero() }
     }
 }
 

@@ -52,7 +52,8 @@ class Skeletonizer:
     gamma : float > 0
         Anchoring weight: lower contracts faster and coarser.
     cg_tol : float in (0, 0.5]
-        Relative residual at which conjugate gradients stop.
+        Relative residual at which conjugate gradients stop, measured in the
+        preconditioner's norm (``sqrt(r . B r)`` against its starting value).
     cg_max_iterations : int >= 1
         Cap on conjugate-gradient iterations per solve.
     max_cycle_nodes : int in [4, 64]
