@@ -228,25 +228,45 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         Connectivity::TwentySix => 3,
     };
     let base = offsets(base_sq);
-    let thin = offsets(2);
-    let all = offsets(3);
-    let node_rows: Vec<(usize, usize)> = rows.nodes().collect();
-    let lookup = |n: usize, o: &[isize; 3]| {
-        let [i, j, k] = rows.voxel(node_rows[n].0, n);
+    let node_rows: Vec<usize> = rows.nodes().map(|(r, _)| r).collect();
+    let lookup = |a: usize, o: &[isize; 3]| {
+        let [i, j, k] = rows.voxel(node_rows[a], a);
         rows.find(i + o[0], j + o[1], k + o[2])
     };
-    let degree: Vec<usize> =
-        (0..n).into_par_iter().map(|a| base.iter().filter(|o| lookup(a, o).is_some()).count()).collect();
-    let (degree, lookup) = (&degree, &lookup);
-    let wider = if params.reconnect_thin && base_sq < 2 { &thin } else { &base };
-    let neighbours = |a: usize| {
-        wider.iter().filter_map(move |o| {
-            let b = lookup(a, o)?;
-            let face = o.iter().map(|x| x * x).sum::<isize>() <= base_sq;
-            (face || degree[a] <= 2 || degree[b as usize] <= 2).then_some(b)
-        })
-    };
-    let counts: Vec<usize> = (0..n).into_par_iter().map(|a| neighbours(a).count()).collect();
+
+    // Base neighbours of every node, one slot per offset (in increasing node order),
+    // `u32::MAX` where the voxel is background.
+    let f = base.len();
+    let mut near = vec![u32::MAX; n * f];
+    near.par_chunks_mut(f * ROW_BLOCK).enumerate().for_each(|(c, part)| {
+        for (t, slots) in part.chunks_mut(f).enumerate() {
+            for (slot, o) in slots.iter_mut().zip(&base) {
+                *slot = lookup(c * ROW_BLOCK + t, o).unwrap_or(u32::MAX);
+            }
+        }
+    });
+    let degree: Vec<usize> = near.par_chunks(f).map(|s| s.iter().filter(|&&b| b != u32::MAX).count()).collect();
+    // Thin-vessel reconnection: the edge-diagonal neighbours of every node of degree
+    // ≤ 2, both ways (the rule joins a pair when either end is thin), sorted.
+    let mut extra: Vec<(u32, u32)> = vec![];
+    if params.reconnect_thin && base_sq < 2 {
+        let diagonal: Vec<[isize; 3]> =
+            offsets(2).into_iter().filter(|o| o.iter().map(|x| x * x).sum::<isize>() == 2).collect();
+        extra = (0..n)
+            .into_par_iter()
+            .filter(|&a| degree[a] <= 2)
+            .flat_map_iter(|a| {
+                let (diagonal, lookup) = (&diagonal, &lookup);
+                diagonal.iter().filter_map(move |o| lookup(a, o)).flat_map(move |b| [(a as u32, b), (b, a as u32)])
+            })
+            .collect();
+        extra.par_sort_unstable();
+        extra.dedup();
+    }
+    let mut counts = degree;
+    for &(a, _) in &extra {
+        counts[a as usize] += 1;
+    }
     let mut offs = Vec::with_capacity(n + 1);
     offs.push(0);
     let mut acc = 0;
@@ -254,37 +274,71 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         acc += c;
         offs.push(acc);
     }
+    drop(counts);
     let mut targets = vec![0u32; acc];
     for_row_blocks(&offs, &mut targets, |block, out| {
+        // Each row: its base neighbours merged with its extra ones, both sorted.
+        let mut x = extra.partition_point(|&(a, _)| (a as usize) < block.start);
         let mut e = 0;
         for a in block {
-            for b in neighbours(a) {
+            let mut more = x;
+            while more < extra.len() && extra[more].0 as usize == a {
+                more += 1;
+            }
+            let mut thin = extra[x..more].iter().map(|&(_, b)| b).peekable();
+            for &b in near[a * f..(a + 1) * f].iter().filter(|&&b| b != u32::MAX) {
+                while let Some(t) = thin.next_if(|&t| t < b) {
+                    out[e] = t;
+                    e += 1;
+                }
                 out[e] = b;
                 e += 1;
             }
+            for t in thin {
+                out[e] = t;
+                e += 1;
+            }
+            x = more;
         }
     });
+    drop((near, extra));
     let mut graph = Csr { offsets: offs, targets };
 
-    // Bridge graph pieces that touch only diagonally.
+    // Bridge graph pieces that touch only diagonally. Candidates: 26-neighbour pairs
+    // in different graph pieces, joined in (a, b) order, as a sequential scan of all
+    // pairs would (pairs already in one piece never bridge, and pieces only grow).
+    // Every candidate has an end outside the largest piece, so only those nodes are
+    // searched.
     let mut uf = UnionFind::<u32>::new(n);
-    for (a, b) in graph.edge_list() {
-        uf.union(a, b);
+    for a in 0..n {
+        for &b in graph.neighbours(a) {
+            if b as usize > a {
+                uf.union(a as u32, b);
+            }
+        }
     }
-    // Candidates: 26-neighbour pairs in different graph pieces, found in parallel;
-    // then joined in (a, b) order, as a sequential scan of all pairs would (pairs
-    // already in one piece never bridge, and pieces only grow).
     let piece: Vec<u32> = (0..n as u32).map(|a| uf.find_mut(a)).collect();
-    let candidates: Vec<(u32, u32)> = (0..n)
+    let mut size = vec![0u32; n];
+    for &p in &piece {
+        size[p as usize] += 1;
+    }
+    let largest = (0..n).max_by_key(|&p| (size[p], std::cmp::Reverse(p))).unwrap_or(0) as u32;
+    drop(size);
+    let all = offsets(3);
+    let mut candidates: Vec<(u32, u32)> = (0..n)
         .into_par_iter()
+        .filter(|&a| piece[a] != largest)
         .flat_map_iter(|a| {
-            let piece = &piece;
+            let (all, piece, lookup) = (&all, &piece, &lookup);
             all.iter().filter_map(move |o| {
                 let b = lookup(a, o)?;
-                ((b as usize) > a && piece[a] != piece[b as usize]).then_some((a as u32, b))
+                (piece[a] != piece[b as usize]).then_some(((a as u32).min(b), (a as u32).max(b)))
             })
         })
         .collect();
+    drop(piece);
+    candidates.par_sort_unstable();
+    candidates.dedup();
     let bridges: Vec<(u32, u32)> = candidates.into_iter().filter(|&(a, b)| uf.union(a, b)).collect();
     if !bridges.is_empty() {
         let mut edges = graph.edge_list();
@@ -292,30 +346,30 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         edges.sort_unstable();
         graph = Csr::from_sorted_edges(n, &edges);
     }
+    // Components numbered by their first node.
     let mut label = vec![u32::MAX; n];
+    let mut label_of_root = vec![u32::MAX; n];
     let mut components = 0u32;
-    let mut root_label = std::collections::HashMap::new();
     for (a, l) in label.iter_mut().enumerate() {
-        let root = uf.find(a as u32);
-        *l = *root_label.entry(root).or_insert_with(|| {
+        let root = uf.find_mut(a as u32) as usize;
+        if label_of_root[root] == u32::MAX {
+            label_of_root[root] = components;
             components += 1;
-            components - 1
-        });
+        }
+        *l = label_of_root[root];
     }
+    drop(label_of_root);
 
-    let positions = node_rows
-        .par_iter()
-        .enumerate()
-        .map(|(node, &(r, _))| {
-            let v = rows.voxel(r, node);
-            std::array::from_fn(|d| v[d] as f64 * spacing[d])
-        })
+    let voxel = |node: usize| rows.voxel(node_rows[node], node);
+    let positions = (0..n)
+        .into_par_iter()
+        .map(|node| voxel(node).map(|v| v as f64))
+        .map(|v| std::array::from_fn(|d| v[d] * spacing[d]))
         .collect();
-    let radii = node_rows
-        .par_iter()
-        .enumerate()
-        .map(|(node, &(r, _))| {
-            let v = rows.voxel(r, node);
+    let radii = (0..n)
+        .into_par_iter()
+        .map(|node| {
+            let v = voxel(node);
             (edt_sq[(v[0] as usize * n1 + v[1] as usize) * n2 + v[2] as usize] as f64).sqrt()
         })
         .collect();
@@ -366,6 +420,99 @@ mod tests {
         q.reconnect_thin = false;
         // Without reconnection the staircase is still joined, by bridges.
         assert_eq!(grid(&m, &q).components, 2);
+    }
+
+    /// The grid graph by its definition, over a dense index: base edges, thin-vessel
+    /// edges where either end has base degree ≤ 2, then bridges over all 26-neighbour
+    /// pairs in (a, b) order; components numbered by first node.
+    fn slow(mask: &Array3<u8>, params: &Params) -> (Vec<(u32, u32)>, Vec<u32>) {
+        let (n0, n1, n2) = mask.dim();
+        let mut id = Array3::from_elem((n0, n1, n2), u32::MAX);
+        let mut vox = vec![];
+        for ((i, j, k), &v) in mask.indexed_iter() {
+            if v != 0 {
+                id[[i, j, k]] = vox.len() as u32;
+                vox.push([i as isize, j as isize, k as isize]);
+            }
+        }
+        let at = |v: [isize; 3], o: [isize; 3]| {
+            let w = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
+            let inside = (0..3).all(|d| w[d] >= 0 && (w[d] as usize) < [n0, n1, n2][d]);
+            if inside {
+                let b = id[[w[0] as usize, w[1] as usize, w[2] as usize]];
+                (b != u32::MAX).then_some(b)
+            } else {
+                None
+            }
+        };
+        let base_sq = match params.connectivity {
+            Connectivity::Six => 1,
+            Connectivity::Eighteen => 2,
+            Connectivity::TwentySix => 3,
+        };
+        let sq = |o: &[isize; 3]| o.iter().map(|x| x * x).sum::<isize>();
+        let all = offsets(3);
+        let degree: Vec<usize> =
+            vox.iter().map(|&v| all.iter().filter(|o| sq(o) <= base_sq && at(v, **o).is_some()).count()).collect();
+        let mut edges = vec![];
+        for (a, &v) in vox.iter().enumerate() {
+            for o in &all {
+                if let Some(b) = at(v, *o) {
+                    let thin = params.reconnect_thin && base_sq < 2 && sq(o) == 2;
+                    if (b as usize) > a && (sq(o) <= base_sq || thin && (degree[a] <= 2 || degree[b as usize] <= 2)) {
+                        edges.push((a as u32, b));
+                    }
+                }
+            }
+        }
+        let mut uf = UnionFind::<u32>::new(vox.len());
+        for &(a, b) in &edges {
+            uf.union(a, b);
+        }
+        for (a, &v) in vox.iter().enumerate() {
+            for o in &all {
+                if let Some(b) = at(v, *o) {
+                    if (b as usize) > a && uf.union(a as u32, b) {
+                        edges.push((a as u32, b));
+                    }
+                }
+            }
+        }
+        edges.sort_unstable();
+        let mut first = std::collections::BTreeMap::new();
+        let label = (0..vox.len() as u32)
+            .map(|a| {
+                let next = first.len() as u32;
+                *first.entry(uf.find(a)).or_insert(next)
+            })
+            .collect();
+        (edges, label)
+    }
+
+    #[test]
+    fn matches_the_definition_on_random_masks() {
+        let mut state = 99u64;
+        let mut rnd = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 33) as u32
+        };
+        for trial in 0..40 {
+            let shape = (1 + rnd() as usize % 9, 1 + rnd() as usize % 10, 1 + rnd() as usize % 11);
+            // Sparse masks have thin voxels and diagonal-only contacts; dense ones have
+            // a large piece and small ones beside it.
+            let fill = [8, 20, 35, 60][trial % 4];
+            let mask = Array3::from_shape_fn(shape, |_| u8::from(rnd() % 100 < fill));
+            for connectivity in [Connectivity::Six, Connectivity::Eighteen, Connectivity::TwentySix] {
+                for reconnect_thin in [true, false] {
+                    let p = Params { connectivity, reconnect_thin, ..Params::default() };
+                    let g = grid(&mask, &p);
+                    let (edges, label) = slow(&mask, &p);
+                    assert_eq!(g.graph.edge_list(), edges, "trial {trial} {connectivity:?} {reconnect_thin}");
+                    assert_eq!(g.component, label);
+                    assert_eq!(g.components, label.iter().map(|&l| l as usize + 1).max().unwrap_or(0));
+                }
+            }
+        }
     }
 
     #[test]
