@@ -9,7 +9,7 @@
 //! New nodes are numbered in key order: component, then cell in C order.
 
 use crate::error::{Error, Result};
-use crate::grid::{for_row_blocks, Csr};
+use crate::grid::{Csr, ROW_BLOCK};
 use rayon::prelude::*;
 
 /// Half-range of a packed cell coordinate: cells must lie in `(-2^20, 2^20)`.
@@ -145,26 +145,47 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
             ([sum[0] / len, sum[1] / len, sum[2] / len], r, g.component[m[0] as usize])
         })
         .collect();
-    let mut edges: Vec<(u32, u32)> = vec![(0, 0); g.graph.targets.len()];
-    for_row_blocks(&g.graph.offsets, &mut edges, |rows, out| {
-        let mut e = 0;
-        for i in rows {
-            for &j in g.graph.neighbours(i) {
-                let (a, b) = (map[i], map[j as usize]);
-                out[e] = (a.min(b), a.max(b));
-                e += 1;
-            }
-        }
-    });
-    edges.retain(|&(a, b)| a != b);
-    edges.par_sort_unstable();
-    edges.dedup();
     Ok(NodeGraph {
-        graph: Csr::from_sorted_edges(clusters, &edges),
+        graph: quotient(&g.graph, &map, &start, &members),
         positions: merged.iter().map(|m| m.0).collect(),
         radii: merged.iter().map(|m| m.1).collect(),
         component: merged.iter().map(|m| m.2).collect(),
     })
+}
+
+/// The graph of the clusters: cluster `k` (members `members[start[k]..start[k + 1]]`)
+/// is joined to every other cluster that a member's neighbour belongs to (`map`).
+/// Built row by row in parallel blocks of clusters, appended in order.
+fn quotient(g: &Csr, map: &[u32], start: &[usize], members: &[u32]) -> Csr {
+    let clusters = start.len() - 1;
+    let parts: Vec<(Vec<usize>, Vec<u32>)> = (0..clusters.div_ceil(ROW_BLOCK))
+        .into_par_iter()
+        .map(|b| {
+            let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(clusters);
+            let (mut lens, mut targets, mut row) = (Vec::with_capacity(rows.len()), vec![], vec![]);
+            for k in rows {
+                row.clear();
+                for &i in &members[start[k]..start[k + 1]] {
+                    row.extend(g.neighbours(i as usize).iter().map(|&j| map[j as usize]).filter(|&m| m as usize != k));
+                }
+                row.sort_unstable();
+                row.dedup();
+                lens.push(row.len());
+                targets.extend_from_slice(&row);
+            }
+            (lens, targets)
+        })
+        .collect();
+    let mut offsets = Vec::with_capacity(clusters + 1);
+    offsets.push(0);
+    let mut targets = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
+    for (lens, t) in parts {
+        for l in lens {
+            offsets.push(offsets[offsets.len() - 1] + l);
+        }
+        targets.extend(t);
+    }
+    Csr { offsets, targets }
 }
 
 #[cfg(test)]
@@ -217,6 +238,52 @@ mod tests {
             component: vec![0, 1],
         };
         assert_eq!(decimate(&g, &[false; 2], 1.0).unwrap().positions.len(), 2);
+    }
+
+    #[test]
+    fn cluster_graph_matches_the_mapped_edge_list() {
+        // A random graph and a random clustering: the quotient's rows are the mapped
+        // edges without self-loops or repeats, as from the sorted edge list.
+        let mut state = 7u64;
+        let mut rnd = move |m: u64| {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 33) % m
+        };
+        for n in [1usize, 5, 300, 9000] {
+            let mut edges: Vec<(u32, u32)> = (0..3 * n)
+                .map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32))
+                .filter(|(a, b)| a != b)
+                .map(|(a, b)| (a.min(b), a.max(b)))
+                .collect();
+            edges.sort_unstable();
+            edges.dedup();
+            let g = Csr::from_sorted_edges(n, &edges);
+            let clusters = 1 + n / 3;
+            let map: Vec<u32> =
+                (0..n).map(|i| if i < clusters { i as u32 } else { rnd(clusters as u64) as u32 }).collect();
+            let mut start = vec![0usize; clusters + 1];
+            for &m in &map {
+                start[m as usize + 1] += 1;
+            }
+            for k in 0..clusters {
+                start[k + 1] += start[k];
+            }
+            let mut fill = start.clone();
+            let mut members = vec![0u32; n];
+            for (i, &m) in map.iter().enumerate() {
+                members[fill[m as usize]] = i as u32;
+                fill[m as usize] += 1;
+            }
+            let mut want: Vec<(u32, u32)> = edges
+                .iter()
+                .map(|&(a, b)| (map[a as usize], map[b as usize]))
+                .filter(|(a, b)| a != b)
+                .map(|(a, b)| (a.min(b), a.max(b)))
+                .collect();
+            want.sort_unstable();
+            want.dedup();
+            assert_eq!(quotient(&g, &map, &start, &members), Csr::from_sorted_edges(clusters, &want), "n = {n}");
+        }
     }
 
     #[test]
