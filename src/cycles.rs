@@ -94,9 +94,49 @@ impl Search {
         Search { stamp: vec![], parent: vec![], now: 0, frontier: vec![], next: vec![], path: vec![] }
     }
 
+    /// The search's answer when it is a triangle or a square, found without the
+    /// search: the breadth-first search from `u` reaches `v` first through the first
+    /// neighbour `a` of `u` (in CSR order) adjacent to `v` (a triangle), or else
+    /// through the first node `b` adjacent to `v` in its second level, which it visits
+    /// in the order "every `a` in CSR order, then `a`'s neighbours in CSR order"
+    /// (a square `v, b, a, u`). Cycles are the dominant case (unit squares of the
+    /// voxel grid, triangles after contraction), so most searches end here. Applies
+    /// only where the search would reach that level within [`BALL_LIMIT`].
+    fn triangle_or_square(&mut self, g: &Csr, u: u32, v: u32, max_nodes: usize) -> bool {
+        let (nu, nv) = (g.neighbours(u as usize), g.neighbours(v as usize));
+        if max_nodes < 4 || nu.len() > BALL_LIMIT {
+            return false;
+        }
+        let adjacent_to_v = |x: u32| nv.binary_search(&x).is_ok();
+        let found = |path: &mut Vec<u32>, nodes: &[u32]| {
+            path.clear();
+            path.extend_from_slice(nodes);
+            true
+        };
+        if let Some(&a) = nu.iter().find(|&&a| a != v && adjacent_to_v(a)) {
+            return found(&mut self.path, &[v, a, u]);
+        }
+        // The search's second level stays within the ball limit if this bound does.
+        let ball = nu.len() + nu.iter().map(|&a| g.neighbours(a as usize).len()).sum::<usize>();
+        if max_nodes < 5 || ball > BALL_LIMIT {
+            return false;
+        }
+        for &a in nu.iter().filter(|&&a| a != v) {
+            if let Some(&b) = g.neighbours(a as usize).iter().find(|&&b| b != u && adjacent_to_v(b)) {
+                return found(&mut self.path, &[v, b, a, u]);
+            }
+        }
+        false
+    }
+
     /// The shortest cycle through the edge `u`–`v` with fewer than `max_nodes` nodes,
     /// left in `self.path` as `v → … → u` (the edge closes it); `false` if none.
     fn shortest_cycle_through(&mut self, g: &Csr, u: u32, v: u32, max_nodes: usize) -> bool {
+        self.triangle_or_square(g, u, v, max_nodes) || self.breadth_first(g, u, v, max_nodes)
+    }
+
+    /// [`Search::shortest_cycle_through`] by the bounded breadth-first search itself.
+    fn breadth_first(&mut self, g: &Csr, u: u32, v: u32, max_nodes: usize) -> bool {
         if self.stamp.len() != g.nodes() {
             (self.stamp, self.parent, self.now) = (vec![0; g.nodes()], vec![0; g.nodes()], 0);
         }
@@ -281,6 +321,43 @@ mod tests {
         assert!(c.iter().all(|c| c.nodes.len() == 4 && (c.area - 1.0).abs() < 1e-12));
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         assert_eq!(pool.install(|| short_cycles(&g.graph, &g.positions, 10)), c);
+    }
+
+    #[test]
+    fn triangles_and_squares_are_the_ones_the_search_finds() {
+        // Random graphs dense in short cycles; every edge's cycle, by the fast path
+        // and by the breadth-first search alone, is the same node sequence.
+        let mut state = 3u64;
+        let mut rnd = move |m: u64| {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 33) % m
+        };
+        for (n, per_node) in [(12usize, 3usize), (60, 2), (400, 3), (2000, 1)] {
+            let mut edges: Vec<(u32, u32)> = (0..per_node * n)
+                .map(|_| {
+                    let a = rnd(n as u64);
+                    (a as u32, ((a + 1 + rnd(6)) % n as u64) as u32)
+                })
+                .filter(|(a, b)| a != b)
+                .map(|(a, b)| (a.min(b), a.max(b)))
+                .collect();
+            edges.sort_unstable();
+            edges.dedup();
+            let g = Csr::from_sorted_edges(n, &edges);
+            let (mut fast, mut slow) = (Search::new(), Search::new());
+            let mut short = 0;
+            for &(u, v) in &edges {
+                for max_nodes in [3, 4, 5, 10] {
+                    let found = fast.shortest_cycle_through(&g, u, v, max_nodes);
+                    assert_eq!(found, slow.breadth_first(&g, u, v, max_nodes), "{u}-{v} {max_nodes}");
+                    if found {
+                        assert_eq!(fast.path, slow.path);
+                        short += usize::from(fast.path.len() <= 4);
+                    }
+                }
+            }
+            assert!(short > 0);
+        }
     }
 
     #[test]
