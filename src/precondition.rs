@@ -31,38 +31,64 @@ const WAVE: usize = 16;
 /// Most Gauss–Seidel blocks: enough to balance a few threads.
 const MAX_BLOCKS: usize = 16;
 
-/// `M` in CSR form: row `j` holds columns `cols[offsets[j]..offsets[j + 1]]` in
-/// increasing order (its diagonal included) with values `vals` (stored as `f32`, like
-/// the Laplacian weights they are built from; accumulated in `f64`).
+/// `M`, stored for the Gauss–Seidel sweeps. Its rows are cut into fixed contiguous
+/// blocks; row `j` of block `[lo, hi)` has entries in earlier blocks (`k < lo`), in-block
+/// lower entries (`lo <= k < j`), the diagonal, in-block upper entries (`j < k < hi`)
+/// and entries in later blocks (`k >= hi`). The forward sweeps read every off-diagonal
+/// entry but the in-block upper ones, the backward sweep only those, so each kind is
+/// stored on its own, row after row in increasing column order, as (column, value)
+/// pairs: every sweep streams one array front to back, skipping nothing. Values are
+/// `f32`, like the Laplacian weights they are built from; arithmetic is `f64`.
 #[derive(Debug, Clone, Default)]
 pub struct NormalMatrix {
-    pub offsets: Vec<usize>,
-    pub cols: Vec<u32>,
-    pub vals: Vec<f32>,
     /// The diagonal `D_j = M_jj` (as stored), positive.
     pub diag: Vec<f64>,
     /// Rows per Gauss–Seidel block (the last block may be shorter): set from the row
     /// count alone by [`NormalMatrix::assemble`], changed by [`NormalMatrix::set_block`].
     block: usize,
-    /// Every row's columns cut at its block: `[b, d, e]` (from the row's start) such that
-    /// `cols[..b]` lie in earlier blocks, `cols[b..d]` are the in-block lower entries,
-    /// `cols[d]` is the diagonal, `cols[d + 1..e]` the in-block upper entries and
-    /// `cols[e..]` lie in later blocks. The sweeps read only the segments they use.
-    bounds: Vec<[u32; 3]>,
+    /// Row `j`'s entries outside the in-block upper part: `lower[lower_at[j]..lower_at[j + 1]]`,
+    /// cut at `cuts[j] = [b, e]` (from the row's start) into earlier blocks `..b`, in-block
+    /// lower `b..e` and later blocks `e..`.
+    lower: Vec<(u32, f32)>,
+    lower_at: Vec<usize>,
+    cuts: Vec<[u32; 2]>,
+    /// Row `j`'s in-block upper entries: `upper[upper_at[j]..upper_at[j + 1]]`.
+    upper: Vec<(u32, f32)>,
+    upper_at: Vec<usize>,
 }
 
-/// The absolute segment ends `[start, b, d, e, end]` of row `j`.
-#[inline]
-fn segments(m: &NormalMatrix, j: usize) -> [usize; 5] {
-    let start = m.offsets[j];
-    let [b, d, e] = m.bounds[j];
-    [start, start + b as usize, start + d as usize, start + e as usize, m.offsets[j + 1]]
+/// A row's entries split for the sweeps, appended to `m`'s arrays.
+fn push_row(m: &mut NormalMatrix, j: usize, row: impl Iterator<Item = (u32, f32)>) {
+    let block = m.block;
+    let (lo, hi) = ((j / block * block) as u32, ((j / block + 1) * block) as u32);
+    let start = m.lower.len();
+    let mut cuts = [u32::MAX; 2];
+    for (k, v) in row {
+        if k == j as u32 {
+            continue;
+        }
+        if k >= lo && cuts[0] == u32::MAX {
+            cuts[0] = (m.lower.len() - start) as u32;
+        }
+        if k > j as u32 && k < hi {
+            m.upper.push((k, v));
+            continue;
+        }
+        if k >= hi && cuts[1] == u32::MAX {
+            cuts[1] = (m.lower.len() - start) as u32;
+        }
+        m.lower.push((k, v));
+    }
+    let len = (m.lower.len() - start) as u32;
+    m.cuts.push(cuts.map(|c| c.min(len)));
+    m.lower_at.push(m.lower.len());
+    m.upper_at.push(m.upper.len());
 }
 
 /// `acc + sum_k m_jk x_k` over the given entries of a row.
 #[inline]
-fn gather(cols: &[u32], vals: &[f32], x: &[V3], mut acc: V3) -> V3 {
-    for (&k, &m) in cols.iter().zip(vals) {
+fn gather(entries: &[(u32, f32)], x: &[V3], mut acc: V3) -> V3 {
+    for &(k, m) in entries {
         let (m, xk) = (m as f64, &x[k as usize]);
         for c in 0..3 {
             acc[c] += m * xk[c];
@@ -114,62 +140,66 @@ fn row(op: &NormalOperator<'_>, j: usize, acc: &mut Vec<(u32, f64)>, slot: &mut 
 }
 
 impl NormalMatrix {
+    /// An empty matrix whose rows will be appended in blocks of `block` rows.
+    fn with_block(n: usize, block: usize) -> NormalMatrix {
+        let mut m = NormalMatrix { block, ..NormalMatrix::default() };
+        m.diag.reserve(n);
+        m.cuts.reserve(n);
+        m.lower_at.reserve(n + 1);
+        m.upper_at.reserve(n + 1);
+        m.lower_at.push(0);
+        m.upper_at.push(0);
+        m
+    }
+
     /// Assemble `M` of `op`.
     pub fn assemble(op: &NormalOperator<'_>) -> NormalMatrix {
         let n = op.graph.nodes();
+        let block = n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK);
         let slots = PerThread::new(|| vec![0u32; n]);
-        let (mut offsets, mut cols, mut vals) = (Vec::with_capacity(n + 1), vec![], vec![]);
-        offsets.push(0);
+        let mut m = NormalMatrix::with_block(n, block);
         // Row blocks are built in parallel a wave at a time and appended in order, so
         // at most one wave of rows exists twice.
         let blocks: Vec<usize> = (0..n.div_ceil(ROW_BLOCK)).collect();
         for wave in blocks.chunks(WAVE) {
-            let parts: Vec<(Vec<usize>, Vec<u32>, Vec<f32>)> = wave
+            let parts: Vec<NormalMatrix> = wave
                 .par_iter()
                 .map(|&b| {
                     slots.with(|slot| {
                         let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n);
                         let mut acc = Vec::with_capacity(64);
-                        let (mut lens, mut cols, mut vals) = (Vec::with_capacity(rows.len()), vec![], vec![]);
+                        let mut part = NormalMatrix::with_block(rows.len(), block);
                         for j in rows {
                             row(op, j, &mut acc, slot);
-                            lens.push(acc.len());
-                            cols.extend(acc.iter().map(|e| e.0));
-                            vals.extend(acc.iter().map(|e| e.1 as f32));
+                            // `M` is positive semi-definite, so a non-positive diagonal
+                            // means an all-zero row and column (or an anchor below f32
+                            // range): give it a unit diagonal, which keeps that node in
+                            // place and the preconditioner positive definite.
+                            let at = acc.partition_point(|e| (e.0 as usize) < j);
+                            let d = acc[at].1 as f32;
+                            part.diag.push(if d.is_nan() || d <= 0.0 { 1.0 } else { d as f64 });
+                            push_row(&mut part, j, acc.iter().map(|e| (e.0, e.1 as f32)));
                         }
-                        (lens, cols, vals)
+                        part
                     })
                 })
                 .collect();
-            for (lens, c, v) in parts {
-                for l in lens {
-                    offsets.push(offsets[offsets.len() - 1] + l);
-                }
-                cols.extend(c);
-                vals.extend(v);
+            for part in parts {
+                m.append(part);
             }
         }
-        drop(slots);
-        let diag_at: Vec<usize> = (0..n)
-            .into_par_iter()
-            .map(|j| {
-                let r = &cols[offsets[j]..offsets[j + 1]];
-                offsets[j] + r.binary_search(&(j as u32)).expect("every row holds its diagonal")
-            })
-            .collect();
-        // `M` is positive semi-definite, so a non-positive diagonal means an all-zero
-        // row and column (or an anchor below f32 range): give it a unit diagonal, which
-        // keeps that node in place and the preconditioner positive definite.
-        for &d in &diag_at {
-            if vals[d].is_nan() || vals[d] <= 0.0 {
-                vals[d] = 1.0;
-            }
-        }
-        let diag = diag_at.iter().map(|&d| vals[d] as f64).collect();
-        drop(diag_at);
-        let mut m = NormalMatrix { offsets, cols, vals, diag, block: 0, bounds: vec![] };
-        m.set_block(n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK));
         m
+    }
+
+    /// Append the rows of `part` (built with the same block size).
+    fn append(&mut self, part: NormalMatrix) {
+        let (lower, upper) = (self.lower.len(), self.upper.len());
+        self.lower_at.extend(part.lower_at[1..].iter().map(|a| a + lower));
+        self.upper_at.extend(part.upper_at[1..].iter().map(|a| a + upper));
+        self.lower.extend(part.lower);
+        self.upper.extend(part.upper);
+        self.cuts.extend(part.cuts);
+        self.diag.extend(part.diag);
     }
 
     /// Rows per Gauss–Seidel block.
@@ -179,21 +209,52 @@ impl NormalMatrix {
 
     /// Use Gauss–Seidel blocks of `rows` rows (at least 1).
     pub fn set_block(&mut self, rows: usize) {
-        let bs = rows.max(1);
-        self.block = bs;
-        self.bounds = (0..self.rows())
-            .into_par_iter()
-            .map(|j| {
-                let (lo, hi) = ((j / bs * bs) as u32, ((j / bs + 1) * bs) as u32);
-                let r = &self.cols[self.offsets[j]..self.offsets[j + 1]];
-                [lo, j as u32, hi].map(|x| r.partition_point(|&k| k < x) as u32)
-            })
-            .collect();
+        let n = self.rows();
+        let mut m = NormalMatrix::with_block(n, rows.max(1));
+        for j in 0..n {
+            m.diag.push(self.diag[j]);
+            let row = self.entries(j);
+            push_row(&mut m, j, row.into_iter().map(|(k, v)| (k, v as f32)));
+        }
+        *self = m;
     }
 
     /// Number of rows.
     pub fn rows(&self) -> usize {
-        self.offsets.len().saturating_sub(1)
+        self.diag.len()
+    }
+
+    /// Row `j`'s entries `(column, M_jk)` in increasing column order, its diagonal included.
+    pub fn entries(&self, j: usize) -> Vec<(u32, f64)> {
+        let [start, b, e, end] = self.forward_segments(j);
+        let wide = |x: &[(u32, f32)]| x.iter().map(|&(k, v)| (k, v as f64)).collect::<Vec<_>>();
+        let mut row = wide(&self.lower[start..e]);
+        row.push((j as u32, self.diag[j]));
+        row.extend(wide(self.upper_entries(j)));
+        row.extend(wide(&self.lower[e..end]));
+        debug_assert!(row.windows(2).all(|w| w[0].0 < w[1].0) && b <= e);
+        row
+    }
+
+    /// The absolute segment ends `[start, b, e, end]` of row `j` in `lower`.
+    #[inline]
+    fn forward_segments(&self, j: usize) -> [usize; 4] {
+        let start = self.lower_at[j];
+        let [b, e] = self.cuts[j];
+        [start, start + b as usize, start + e as usize, self.lower_at[j + 1]]
+    }
+
+    /// Row `j`'s in-block upper entries.
+    #[inline]
+    fn upper_entries(&self, j: usize) -> &[(u32, f32)] {
+        &self.upper[self.upper_at[j]..self.upper_at[j + 1]]
+    }
+
+    /// Row `j`'s in-block lower entries.
+    #[inline]
+    fn lower_entries(&self, j: usize) -> &[(u32, f32)] {
+        let [_, b, e, _] = self.forward_segments(j);
+        &self.lower[b..e]
     }
 
     /// `y = M x`, returning the per-coordinate dot products `x · y` (summed over
@@ -207,12 +268,10 @@ impl NormalMatrix {
                 for (t, yj) in ys.iter_mut().enumerate() {
                     let j = c * CHUNK + t;
                     let mut s = [0.0; 3];
-                    let (lo, hi) = (self.offsets[j], self.offsets[j + 1]);
-                    for (&k, &m) in self.cols[lo..hi].iter().zip(&self.vals[lo..hi]) {
-                        let (m, xk) = (m as f64, &x[k as usize]);
-                        s[0] += m * xk[0];
-                        s[1] += m * xk[1];
-                        s[2] += m * xk[2];
+                    for (k, m) in self.entries(j) {
+                        for d in 0..3 {
+                            s[d] += m * x[k as usize][d];
+                        }
                     }
                     *yj = s;
                     for d in 0..3 {
@@ -235,24 +294,17 @@ impl NormalMatrix {
     /// form is the reference its tests check against.
     pub fn sgs_dot(&self, r: &[V3], z: &mut [V3]) -> V3 {
         let bs = self.block;
+        self.forward(r, z);
         let parts: Vec<V3> = z
             .par_chunks_mut(bs)
             .enumerate()
             .map(|(b, zs)| {
                 let lo = b * bs;
                 let hi = lo + zs.len();
-                // Forward: (D + L) y = r.
-                for j in lo..hi {
-                    let [_, b, d, _, _] = segments(self, j);
-                    let s = gather_local(&self.cols[b..d], &self.vals[b..d], zs, lo, r[j], -1.0);
-                    let inv = 1.0 / self.diag[j];
-                    zs[j - lo] = [s[0] * inv, s[1] * inv, s[2] * inv];
-                }
                 // Backward: (D + U) z = D y, i.e. z_j = y_j - (U z)_j / D_j.
                 let mut dot = [0.0; 3];
                 for j in (lo..hi).rev() {
-                    let [_, _, d, e, _] = segments(self, j);
-                    let s = gather_local(&self.cols[d + 1..e], &self.vals[d + 1..e], zs, lo, [0.0; 3], 1.0);
+                    let s = gather_local(self.upper_entries(j), zs, lo, [0.0; 3], 1.0);
                     let inv = 1.0 / self.diag[j];
                     let zj = &mut zs[j - lo];
                     for c in 0..3 {
@@ -272,8 +324,7 @@ impl NormalMatrix {
         y.par_chunks_mut(bs).enumerate().for_each(|(b, ys)| {
             let lo = b * bs;
             for j in lo..lo + ys.len() {
-                let [_, b, d, _, _] = segments(self, j);
-                let t = gather_local(&self.cols[b..d], &self.vals[b..d], ys, lo, r[j], -1.0);
+                let t = gather_local(self.lower_entries(j), ys, lo, r[j], -1.0);
                 let inv = 1.0 / self.diag[j];
                 ys[j - lo] = [t[0] * inv, t[1] * inv, t[2] * inv];
             }
@@ -302,8 +353,7 @@ impl NormalMatrix {
                         ys[t][c] -= step[c] * ws[t][c];
                         hs[t][c] = dj * ys[t][c] + beta[c] * hs[t][c];
                     }
-                    let [_, _, d, e, _] = segments(self, j);
-                    let u = gather_local(&self.cols[d + 1..e], &self.vals[d + 1..e], ss, lo, hs[t], -1.0);
+                    let u = gather_local(self.upper_entries(j), ss, lo, hs[t], -1.0);
                     let inv = 1.0 / dj;
                     ss[t] = [u[0] * inv, u[1] * inv, u[2] * inv];
                 }
@@ -327,10 +377,10 @@ impl NormalMatrix {
                 let lo = b * bs;
                 let mut dots = [[0.0; 3]; 4];
                 for j in lo..lo + ws.len() {
-                    let [start, b, d, e, end] = segments(self, j);
-                    let mut qj = gather(&self.cols[start..b], &self.vals[start..b], s, hat[j]);
+                    let [start, b, e, end] = self.forward_segments(j);
+                    let mut qj = gather(&self.lower[start..b], s, hat[j]);
                     let mut wj = [0.0; 3];
-                    for (&k, &m) in self.cols[b..d].iter().zip(&self.vals[b..d]) {
+                    for &(k, m) in &self.lower[b..e] {
                         let (k, m) = (k as usize, m as f64);
                         let (sk, wk) = (&s[k], &ws[k - lo]);
                         for c in 0..3 {
@@ -338,7 +388,7 @@ impl NormalMatrix {
                             wj[c] += m * wk[c];
                         }
                     }
-                    let qj = gather(&self.cols[e..end], &self.vals[e..end], s, qj);
+                    let qj = gather(&self.lower[e..end], s, qj);
                     let dj = self.diag[j];
                     let inv = 1.0 / dj;
                     for c in 0..3 {
@@ -386,8 +436,8 @@ impl Krylov {
 
 /// `acc + sign * sum_k m_jk x_k` over entries in a block whose values `x` start at row `lo`.
 #[inline]
-fn gather_local(cols: &[u32], vals: &[f32], x: &[V3], lo: usize, mut acc: V3, sign: f64) -> V3 {
-    for (&k, &m) in cols.iter().zip(vals) {
+fn gather_local(entries: &[(u32, f32)], x: &[V3], lo: usize, mut acc: V3, sign: f64) -> V3 {
+    for &(k, m) in entries {
         let (m, xk) = (m as f64, &x[k as usize - lo]);
         for c in 0..3 {
             acc[c] += sign * (m * xk[c]);
