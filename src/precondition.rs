@@ -294,7 +294,8 @@ impl NormalMatrix {
     /// form is the reference its tests check against.
     pub fn sgs_dot(&self, r: &[V3], z: &mut [V3]) -> V3 {
         let bs = self.block;
-        self.forward(r, z);
+        z.copy_from_slice(r);
+        self.forward(z);
         let parts: Vec<V3> = z
             .par_chunks_mut(bs)
             .enumerate()
@@ -318,13 +319,14 @@ impl NormalMatrix {
         parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
     }
 
-    /// `y = (D + L)⁻¹ r` (block lower triangular solve).
-    pub fn forward(&self, r: &[V3], y: &mut [V3]) {
+    /// `y ← (D + L)⁻¹ y` (block lower triangular solve, in place: row `j` reads its own
+    /// right-hand side before it writes, and earlier rows are solved by then).
+    pub fn forward(&self, y: &mut [V3]) {
         let bs = self.block;
         y.par_chunks_mut(bs).enumerate().for_each(|(b, ys)| {
             let lo = b * bs;
             for j in lo..lo + ys.len() {
-                let t = gather_local(self.lower_entries(j), ys, lo, r[j], -1.0);
+                let t = gather_local(self.lower_entries(j), ys, lo, ys[j - lo], -1.0);
                 let inv = 1.0 / self.diag[j];
                 ys[j - lo] = [t[0] * inv, t[1] * inv, t[2] * inv];
             }
@@ -424,11 +426,12 @@ pub struct Krylov {
 }
 
 impl Krylov {
-    /// The state at `x = 0` for the right-hand side `r`: `y = (D + L)⁻¹ r`, the rest zero.
-    pub fn start(m: &NormalMatrix, r: &[V3]) -> Krylov {
+    /// The state at `x = 0` for the right-hand side `r`: `y = (D + L)⁻¹ r` (in `r`'s
+    /// place, so the two never both exist), the rest zero.
+    pub fn start(m: &NormalMatrix, r: Vec<V3>) -> Krylov {
         let n = r.len();
-        let mut y = vec![[0.0; 3]; n];
-        m.forward(r, &mut y);
+        let mut y = r;
+        m.forward(&mut y);
         let zero = || vec![[0.0; 3]; n];
         Krylov { x: zero(), y, hat: zero(), s: zero(), w: zero() }
     }

@@ -209,8 +209,7 @@ pub fn solve(m: &NormalMatrix, r: Vec<V3>, tol: f64, max_iterations: usize) -> (
     // test, so neither `r` nor `M s` is stored. `r · B r` of the next residual follows
     // from dot products taken in `forward_product`, so the updates of `x` and `y` wait
     // for the next `backward` pass instead of a pass of their own.
-    let mut k = Krylov::start(m, &r);
-    drop(r);
+    let mut k = Krylov::start(m, r);
     let rz0 = weighted_norms(&m.diag, &k.y);
     let mut active = rz0.map(|x| x > 0.0);
     let (mut step, mut beta) = ([0.0; 3], [0.0; 3]);
