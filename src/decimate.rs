@@ -9,7 +9,7 @@
 //! New nodes are numbered in key order: component, then cell in C order.
 
 use crate::error::{Error, Result};
-use crate::grid::{Csr, ROW_BLOCK};
+use crate::grid::{filled, Csr, ROW_BLOCK};
 use rayon::prelude::*;
 
 /// Half-range of a packed cell coordinate: cells must lie in `(-2^20, 2^20)`.
@@ -115,7 +115,7 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
     let clusters = clusters as usize;
     let map: Vec<u32> = cell.iter().map(|&k| cluster_of_cell[k as usize]).collect();
     // Members of every cluster in increasing node order (counting sort).
-    let mut start = vec![0usize; clusters + 1];
+    let mut start = filled(clusters + 1, 0usize);
     for &m in &map {
         start[m as usize + 1] += 1;
     }

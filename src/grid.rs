@@ -105,6 +105,15 @@ pub fn for_row_blocks<T: Send>(offsets: &[usize], data: &mut [T], f: impl Fn(std
     parts.into_par_iter().for_each(|(rows, part)| f(rows, part));
 }
 
+/// `n` copies of `value`, written in parallel. Unlike `vec![0; n]` (calloc: pages
+/// mapped to the shared zero page until written), every page is first touched by a
+/// write, so an array that is read before it is written costs one page fault per page
+/// rather than two, and no TLB shootdown of the other cores running the process
+/// (measured at 512³: 10.8 s of system time in 31 s on 2 threads before).
+pub fn filled<T: Copy + Send + Sync>(n: usize, value: T) -> Vec<T> {
+    (0..n).into_par_iter().map(|_| value).collect()
+}
+
 /// One scratch value per worker thread of the current rayon pool, lent by thread
 /// index, so a parallel pass can reuse large buffers without allocating per task.
 pub struct PerThread<T>(Vec<Mutex<T>>);
@@ -318,7 +327,7 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         }
     }
     let piece: Vec<u32> = (0..n as u32).map(|a| uf.find_mut(a)).collect();
-    let mut size = vec![0u32; n];
+    let mut size = filled(n, 0u32);
     for &p in &piece {
         size[p as usize] += 1;
     }

@@ -16,7 +16,7 @@
 //! swept sequentially ignoring its coupling to other blocks (block Jacobi with
 //! symmetric Gauss–Seidel inside), and every reduction sums fixed chunks in order.
 
-use crate::grid::{Csr, PerThread, ROW_BLOCK};
+use crate::grid::{filled, Csr, PerThread, ROW_BLOCK};
 use crate::solver::NormalOperator;
 use rayon::prelude::*;
 
@@ -156,7 +156,7 @@ impl NormalMatrix {
     pub fn assemble(op: &NormalOperator<'_>) -> NormalMatrix {
         let n = op.graph.nodes();
         let block = n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK);
-        let slots = PerThread::new(|| vec![0u32; n]);
+        let slots = PerThread::new(|| filled(n, 0u32));
         let mut m = NormalMatrix::with_block(n, block);
         // Row blocks are built in parallel a wave at a time and appended in order, so
         // at most one wave of rows exists twice.
@@ -432,7 +432,7 @@ impl Krylov {
         let n = r.len();
         let mut y = r;
         m.forward(&mut y);
-        let zero = || vec![[0.0; 3]; n];
+        let zero = || filled(n, [0.0; 3]);
         Krylov { x: zero(), y, hat: zero(), s: zero(), w: zero() }
     }
 }
