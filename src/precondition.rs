@@ -26,8 +26,6 @@ type V3 = [f64; 3];
 const CHUNK: usize = 8192;
 /// Fewest rows in a Gauss–Seidel block (thin blocks lose coupling and iterations grow).
 const MIN_BLOCK: usize = 32_768;
-/// Row blocks assembled per parallel wave (a bound on the assembly's scratch).
-const WAVE: usize = 16;
 /// Most Gauss–Seidel blocks: enough to balance a few threads.
 const MAX_BLOCKS: usize = 16;
 
@@ -39,6 +37,10 @@ const MAX_BLOCKS: usize = 16;
 /// stored on its own, row after row in increasing column order, as (column, value)
 /// pairs: every sweep streams one array front to back, skipping nothing. Values are
 /// `f32`, like the Laplacian weights they are built from; arithmetic is `f64`.
+///
+/// The rows are kept in stripes of [`ROW_BLOCK`] rows, each built by one parallel task
+/// and never copied: no serial concatenation, and the pages of each stripe are first
+/// touched by the thread that builds it.
 #[derive(Debug, Clone, Default)]
 pub struct NormalMatrix {
     /// The diagonal `D_j = M_jj` (as stored), positive.
@@ -46,43 +48,65 @@ pub struct NormalMatrix {
     /// Rows per Gauss–Seidel block (the last block may be shorter): set from the row
     /// count alone by [`NormalMatrix::assemble`], changed by [`NormalMatrix::set_block`].
     block: usize,
-    /// Row `j`'s entries outside the in-block upper part: `lower[lower_at[j]..lower_at[j + 1]]`,
-    /// cut at `cuts[j] = [b, e]` (from the row's start) into earlier blocks `..b`, in-block
-    /// lower `b..e` and later blocks `e..`.
+    /// Rows `s * ROW_BLOCK..` in stripe `s`.
+    stripes: Vec<Stripe>,
+}
+
+/// Consecutive rows of `M` without their diagonal, split for the sweeps.
+#[derive(Debug, Clone, Default)]
+struct Stripe {
+    /// Row `t`'s entries outside the in-block upper part: `lower[lower_at[t]..lower_at[t + 1]]`,
+    /// cut at `cuts[t] = [b, e]` (from the row's start) into earlier blocks `..b`,
+    /// in-block lower `b..e` and later blocks `e..`.
     lower: Vec<(u32, f32)>,
     lower_at: Vec<usize>,
     cuts: Vec<[u32; 2]>,
-    /// Row `j`'s in-block upper entries: `upper[upper_at[j]..upper_at[j + 1]]`.
+    /// Row `t`'s in-block upper entries: `upper[upper_at[t]..upper_at[t + 1]]`.
     upper: Vec<(u32, f32)>,
     upper_at: Vec<usize>,
 }
 
-/// A row's entries split for the sweeps, appended to `m`'s arrays.
-fn push_row(m: &mut NormalMatrix, j: usize, row: impl Iterator<Item = (u32, f32)>) {
-    let block = m.block;
-    let (lo, hi) = ((j / block * block) as u32, ((j / block + 1) * block) as u32);
-    let start = m.lower.len();
-    let mut cuts = [u32::MAX; 2];
-    for (k, v) in row {
-        if k == j as u32 {
-            continue;
-        }
-        if k >= lo && cuts[0] == u32::MAX {
-            cuts[0] = (m.lower.len() - start) as u32;
-        }
-        if k > j as u32 && k < hi {
-            m.upper.push((k, v));
-            continue;
-        }
-        if k >= hi && cuts[1] == u32::MAX {
-            cuts[1] = (m.lower.len() - start) as u32;
-        }
-        m.lower.push((k, v));
+impl Stripe {
+    fn new() -> Stripe {
+        Stripe { lower_at: vec![0], upper_at: vec![0], ..Stripe::default() }
     }
-    let len = (m.lower.len() - start) as u32;
-    m.cuts.push(cuts.map(|c| c.min(len)));
-    m.lower_at.push(m.lower.len());
-    m.upper_at.push(m.upper.len());
+
+    /// Give back the room the vectors grew into beyond their length.
+    fn shrink_to_fit(&mut self) {
+        self.lower.shrink_to_fit();
+        self.upper.shrink_to_fit();
+        self.lower_at.shrink_to_fit();
+        self.upper_at.shrink_to_fit();
+        self.cuts.shrink_to_fit();
+    }
+
+    /// Append row `j` (entries in increasing column order; its diagonal is skipped),
+    /// split at its Gauss–Seidel block of `block` rows.
+    fn push_row(&mut self, j: usize, block: usize, row: impl Iterator<Item = (u32, f32)>) {
+        let (lo, hi) = ((j / block * block) as u32, ((j / block + 1) * block) as u32);
+        let start = self.lower.len();
+        let mut cuts = [u32::MAX; 2];
+        for (k, v) in row {
+            if k == j as u32 {
+                continue;
+            }
+            if k >= lo && cuts[0] == u32::MAX {
+                cuts[0] = (self.lower.len() - start) as u32;
+            }
+            if k > j as u32 && k < hi {
+                self.upper.push((k, v));
+                continue;
+            }
+            if k >= hi && cuts[1] == u32::MAX {
+                cuts[1] = (self.lower.len() - start) as u32;
+            }
+            self.lower.push((k, v));
+        }
+        let len = (self.lower.len() - start) as u32;
+        self.cuts.push(cuts.map(|c| c.min(len)));
+        self.lower_at.push(self.lower.len());
+        self.upper_at.push(self.upper.len());
+    }
 }
 
 /// `acc + sum_k m_jk x_k` over the given entries of a row.
@@ -140,66 +164,38 @@ fn row(op: &NormalOperator<'_>, j: usize, acc: &mut Vec<(u32, f64)>, slot: &mut 
 }
 
 impl NormalMatrix {
-    /// An empty matrix whose rows will be appended in blocks of `block` rows.
-    fn with_block(n: usize, block: usize) -> NormalMatrix {
-        let mut m = NormalMatrix { block, ..NormalMatrix::default() };
-        m.diag.reserve(n);
-        m.cuts.reserve(n);
-        m.lower_at.reserve(n + 1);
-        m.upper_at.reserve(n + 1);
-        m.lower_at.push(0);
-        m.upper_at.push(0);
-        m
-    }
-
     /// Assemble `M` of `op`.
     pub fn assemble(op: &NormalOperator<'_>) -> NormalMatrix {
         let n = op.graph.nodes();
         let block = n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK);
         let slots = PerThread::new(|| filled(n, 0u32));
-        let mut m = NormalMatrix::with_block(n, block);
-        // Row blocks are built in parallel a wave at a time and appended in order, so
-        // at most one wave of rows exists twice.
-        let blocks: Vec<usize> = (0..n.div_ceil(ROW_BLOCK)).collect();
-        for wave in blocks.chunks(WAVE) {
-            let parts: Vec<NormalMatrix> = wave
-                .par_iter()
-                .map(|&b| {
-                    slots.with(|slot| {
-                        let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n);
-                        let mut acc = Vec::with_capacity(64);
-                        let mut part = NormalMatrix::with_block(rows.len(), block);
-                        for j in rows {
-                            row(op, j, &mut acc, slot);
-                            // `M` is positive semi-definite, so a non-positive diagonal
-                            // means an all-zero row and column (or an anchor below f32
-                            // range): give it a unit diagonal, which keeps that node in
-                            // place and the preconditioner positive definite.
-                            let at = acc.partition_point(|e| (e.0 as usize) < j);
-                            let d = acc[at].1 as f32;
-                            part.diag.push(if d.is_nan() || d <= 0.0 { 1.0 } else { d as f64 });
-                            push_row(&mut part, j, acc.iter().map(|e| (e.0, e.1 as f32)));
-                        }
-                        part
-                    })
+        let built: Vec<(Stripe, Vec<f64>)> = (0..n.div_ceil(ROW_BLOCK))
+            .into_par_iter()
+            .map(|b| {
+                slots.with(|slot| {
+                    let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n);
+                    let mut acc = Vec::with_capacity(64);
+                    let (mut stripe, mut diag) = (Stripe::new(), Vec::with_capacity(rows.len()));
+                    for j in rows {
+                        row(op, j, &mut acc, slot);
+                        // `M` is positive semi-definite, so a non-positive diagonal
+                        // means an all-zero row and column (or an anchor below f32
+                        // range): give it a unit diagonal, which keeps that node in
+                        // place and the preconditioner positive definite.
+                        let at = acc.partition_point(|e| (e.0 as usize) < j);
+                        let d = acc[at].1 as f32;
+                        diag.push(if d.is_nan() || d <= 0.0 { 1.0 } else { d as f64 });
+                        stripe.push_row(j, block, acc.iter().map(|e| (e.0, e.1 as f32)));
+                    }
+                    stripe.shrink_to_fit();
+                    (stripe, diag)
                 })
-                .collect();
-            for part in parts {
-                m.append(part);
-            }
-        }
-        m
-    }
-
-    /// Append the rows of `part` (built with the same block size).
-    fn append(&mut self, part: NormalMatrix) {
-        let (lower, upper) = (self.lower.len(), self.upper.len());
-        self.lower_at.extend(part.lower_at[1..].iter().map(|a| a + lower));
-        self.upper_at.extend(part.upper_at[1..].iter().map(|a| a + upper));
-        self.lower.extend(part.lower);
-        self.upper.extend(part.upper);
-        self.cuts.extend(part.cuts);
-        self.diag.extend(part.diag);
+            })
+            .collect();
+        drop(slots);
+        let diag = (0..n).into_par_iter().map(|j| built[j / ROW_BLOCK].1[j % ROW_BLOCK]).collect();
+        let stripes = built.into_iter().map(|(stripe, _)| stripe).collect();
+        NormalMatrix { diag, block, stripes }
     }
 
     /// Rows per Gauss–Seidel block.
@@ -209,14 +205,18 @@ impl NormalMatrix {
 
     /// Use Gauss–Seidel blocks of `rows` rows (at least 1).
     pub fn set_block(&mut self, rows: usize) {
-        let n = self.rows();
-        let mut m = NormalMatrix::with_block(n, rows.max(1));
-        for j in 0..n {
-            m.diag.push(self.diag[j]);
-            let row = self.entries(j);
-            push_row(&mut m, j, row.into_iter().map(|(k, v)| (k, v as f32)));
-        }
-        *self = m;
+        let (n, block) = (self.rows(), rows.max(1));
+        let stripes = (0..n.div_ceil(ROW_BLOCK))
+            .into_par_iter()
+            .map(|b| {
+                let mut stripe = Stripe::new();
+                for j in b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n) {
+                    stripe.push_row(j, block, self.entries(j).into_iter().map(|(k, v)| (k, v as f32)));
+                }
+                stripe
+            })
+            .collect();
+        (self.block, self.stripes) = (block, stripes);
     }
 
     /// Number of rows.
@@ -226,35 +226,37 @@ impl NormalMatrix {
 
     /// Row `j`'s entries `(column, M_jk)` in increasing column order, its diagonal included.
     pub fn entries(&self, j: usize) -> Vec<(u32, f64)> {
-        let [start, b, e, end] = self.forward_segments(j);
+        let (lower, _, e) = self.forward_row(j);
         let wide = |x: &[(u32, f32)]| x.iter().map(|&(k, v)| (k, v as f64)).collect::<Vec<_>>();
-        let mut row = wide(&self.lower[start..e]);
+        let mut row = wide(&lower[..e]);
         row.push((j as u32, self.diag[j]));
         row.extend(wide(self.upper_entries(j)));
-        row.extend(wide(&self.lower[e..end]));
-        debug_assert!(row.windows(2).all(|w| w[0].0 < w[1].0) && b <= e);
+        row.extend(wide(&lower[e..]));
+        debug_assert!(row.windows(2).all(|w| w[0].0 < w[1].0));
         row
     }
 
-    /// The absolute segment ends `[start, b, e, end]` of row `j` in `lower`.
+    /// Row `j`'s entries but the diagonal and the in-block upper ones, with the ends
+    /// `b`, `e` of its earlier-block and in-block lower parts.
     #[inline]
-    fn forward_segments(&self, j: usize) -> [usize; 4] {
-        let start = self.lower_at[j];
-        let [b, e] = self.cuts[j];
-        [start, start + b as usize, start + e as usize, self.lower_at[j + 1]]
+    fn forward_row(&self, j: usize) -> (&[(u32, f32)], usize, usize) {
+        let (s, t) = (&self.stripes[j / ROW_BLOCK], j % ROW_BLOCK);
+        let [b, e] = s.cuts[t];
+        (&s.lower[s.lower_at[t]..s.lower_at[t + 1]], b as usize, e as usize)
     }
 
     /// Row `j`'s in-block upper entries.
     #[inline]
     fn upper_entries(&self, j: usize) -> &[(u32, f32)] {
-        &self.upper[self.upper_at[j]..self.upper_at[j + 1]]
+        let (s, t) = (&self.stripes[j / ROW_BLOCK], j % ROW_BLOCK);
+        &s.upper[s.upper_at[t]..s.upper_at[t + 1]]
     }
 
     /// Row `j`'s in-block lower entries.
     #[inline]
     fn lower_entries(&self, j: usize) -> &[(u32, f32)] {
-        let [_, b, e, _] = self.forward_segments(j);
-        &self.lower[b..e]
+        let (lower, b, e) = self.forward_row(j);
+        &lower[b..e]
     }
 
     /// `y = M x`, returning the per-coordinate dot products `x · y` (summed over
@@ -379,10 +381,10 @@ impl NormalMatrix {
                 let lo = b * bs;
                 let mut dots = [[0.0; 3]; 4];
                 for j in lo..lo + ws.len() {
-                    let [start, b, e, end] = self.forward_segments(j);
-                    let mut qj = gather(&self.lower[start..b], s, hat[j]);
+                    let (row, b, e) = self.forward_row(j);
+                    let mut qj = gather(&row[..b], s, hat[j]);
                     let mut wj = [0.0; 3];
-                    for &(k, m) in &self.lower[b..e] {
+                    for &(k, m) in &row[b..e] {
                         let (k, m) = (k as usize, m as f64);
                         let (sk, wk) = (&s[k], &ws[k - lo]);
                         for c in 0..3 {
@@ -390,7 +392,7 @@ impl NormalMatrix {
                             wj[c] += m * wk[c];
                         }
                     }
-                    let qj = gather(&self.lower[e..end], s, qj);
+                    let qj = gather(&row[e..], s, qj);
                     let dj = self.diag[j];
                     let inv = 1.0 / dj;
                     for c in 0..3 {
