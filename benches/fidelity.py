@@ -337,7 +337,11 @@ def evaluate(
             graph = compare.run(method, case.mask, case.spacing, **options)
             row.update(seconds=graph.info["seconds"], nodes=graph.n_nodes, edges=graph.n_edges)
             if method == "vesselflow":
-                row.update(iterations=graph.info["iterations"], converged=graph.info["converged"])
+                row.update(
+                    iterations=graph.info["iterations"],
+                    converged=graph.info["converged"],
+                    stalled=graph.info["stalled"],
+                )
             row.update(score(case, graph, sigma_cells))
             if recipe.figure:
                 figure[method] = graph
@@ -628,10 +632,12 @@ def report(df: pd.DataFrame, methods: Sequence[str], args: argparse.Namespace) -
     ]
     ours = df[df.method == "vesselflow"]
     if "iterations" in ours:
+        converged, stalled = (ours[k].fillna(False).astype(bool) for k in ("converged", "stalled"))
         parts += [
             f"vesselflow contraction iterations: mean {ours.iterations.mean():.1f}, max "
-            f"{int(ours.iterations.max())}; converged on {int(ours.converged.sum())}/{len(ours)} "
-            "volumes.",
+            f"{int(ours.iterations.max())}; converged on {int(converged.sum())}/{len(ours)} "
+            f"volumes, stalled near convergence (`stall_ratio`) on {int(stalled.sum())}, "
+            f"stopped at `max_iterations` on {int((~converged & ~stalled).sum())}.",
             "",
         ]
     if "error" in df and df.error.notna().any():

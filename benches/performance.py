@@ -151,6 +151,7 @@ def _prepare(tool: str, threads: int, spacing: tuple[float, float, float]):
                 "edges": len(graph.edges),
                 "iterations": info["iterations"],
                 "converged": info["converged"],
+                "stalled": info["stalled"],
                 "refine_iterations": info["refine_iterations"],
                 "stage_peak_bytes": peaks.peaks,
                 "sha256": digest.hexdigest(),
@@ -313,7 +314,7 @@ def _fmt_stages(stages: dict) -> str:
 
 def _fmt_result(tool: str, r: dict) -> str:
     if tool == "vesselflow":
-        conv = "converged" if r["converged"] else "NOT converged"
+        conv = "converged" if r["converged"] else "stalled" if r["stalled"] else "NOT converged"
         return (
             f"{r['nodes']} nodes, {r['edges']} edges; {r['iterations']} it. ({conv}), "
             f"{r['refine_iterations']} refine it."

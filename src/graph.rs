@@ -17,8 +17,11 @@ pub struct RunInfo {
     pub mask_components: usize,
     /// Contraction iterations run.
     pub iterations: usize,
-    /// Whether the cycle-area test stopped the contraction (false: hit `max_iterations`).
+    /// Whether the cycle-area test stopped the contraction.
     pub converged: bool,
+    /// Whether the stall test stopped it (`Params::stall_ratio`); when neither this nor
+    /// `converged` holds, it ran to `max_iterations`.
+    pub stalled: bool,
     /// Refinement iterations run.
     pub refine_iterations: usize,
     /// Whether refinement ended with no small cycle left (false: hit its cap).

@@ -8,7 +8,7 @@ use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid;
 use crate::laplacian;
-use crate::params::{AreaReference, Params};
+use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared, Voxel};
 use ndarray::ArrayView3;
@@ -192,8 +192,15 @@ impl Skeletonizer {
             info.nodes_per_iteration.push(g.positions.len());
             info.area_per_iteration.push(a_t);
             info.converged = a_t <= info.area_reference;
+            let [before, after] = [info.nodes_per_iteration.len() - 2, info.nodes_per_iteration.len() - 1]
+                .map(|k| info.nodes_per_iteration[k] as f64);
+            info.stalled =
+                !info.converged && after > (1.0 - p.stall_ratio) * before && a_t <= STALL_AREA * info.area_reference;
             let measure = if info.area_reference > 0.0 { a_t / info.area_reference } else { 0.0 };
             report(observer, "contract", info.iterations, g.positions.len(), measure)?;
+            if info.stalled {
+                break;
+            }
         }
 
         // Refinement (§III-G).

@@ -61,11 +61,17 @@ class Skeletonizer:
     stop_ratio : float in (0, 1]
         Contraction stops when the short-cycle area falls to this fraction of the
         reference area.
+    stall_ratio : float in [0, 0.5]
+        Contraction also stops (``info["stalled"]``) when an iteration merges fewer than
+        this fraction of the nodes while the short-cycle area is within 10 times the stop
+        level: the graph has stopped simplifying and further flow only shortens vessel
+        ends. 0 turns the test off (METHOD.md).
     area_reference : {"volume", "initial_area"}
         Reference area: the foreground voxel count (the authors' code) or the initial
         short-cycle area (the paper).
     max_iterations : int >= 0
-        Cap on contraction iterations (``info["converged"]`` is False if reached).
+        Cap on contraction iterations (``info["converged"]`` and ``info["stalled"]``
+        are False if reached).
     refine_area : float >= 0
         Refinement collapses cycles with an area below this many squared voxels.
     max_refine_iterations : int >= 0
@@ -102,6 +108,7 @@ class Skeletonizer:
         cg_max_iterations: int = 2000,
         max_cycle_nodes: int = 10,
         stop_ratio: float = 1e-3,
+        stall_ratio: float = 0.01,
         area_reference: Literal["volume", "initial_area"] = "volume",
         max_iterations: int = 100,
         refine_area: float = 50.0,
@@ -158,12 +165,12 @@ class Skeletonizer:
             Default ``None``: no pruning.
 
         The GIL is released while the core runs; Ctrl-C raises ``KeyboardInterrupt``.
-        A run that stops at ``max_iterations`` before converging logs a warning on
-        the ``vesselflow`` logger.
+        A run that stops at ``max_iterations`` before converging (or stalling) logs a
+        warning on the ``vesselflow`` logger.
         """
         with _progress_callback(progress, int(self.params["max_iterations"])) as callback:
             positions, radii, edges, info = self._core.run(mask, spacing, callback)
-        if not info["converged"]:
+        if not (info["converged"] or info["stalled"]):
             logger.warning(
                 "contraction stopped at max_iterations=%d before converging "
                 "(info['converged'] is False; see info['area_per_iteration']): "
@@ -205,7 +212,7 @@ def _progress_callback(
         def update(stage: str, iteration: int, nodes: int, measure: float) -> None:
             if stage == "contract":
                 bar.update(iteration - bar.n)
-            elif stage == "output":  # converged early: show the bar as complete
+            elif stage == "output":  # converged or stalled early: show the bar as complete
                 bar.total = bar.n
             bar.set_postfix(stage=stage, nodes=nodes, measure=f"{measure:.3g}")
 

@@ -6,6 +6,7 @@ import logging
 
 import vesselflow
 from conftest import make_tube
+from vesselflow import synth
 
 
 def test_progress_true_shows_a_bar_on_stderr(capsys):
@@ -49,3 +50,17 @@ def test_converged_run_logs_no_warning(caplog):
         graph = vesselflow.skeletonize(make_tube())
     assert graph.info["converged"] is True
     assert caplog.records == []
+
+
+def test_stalled_run_logs_no_warning(caplog):
+    # Thin vessels (radius 0.5 to 2 voxels): the graph stops simplifying after a few
+    # iterations, well before the cycle-area level; that is a normal end, not a cap.
+    mask, _ = synth.vascular_tree(
+        (64, 64, 64), n_terminals=32, seed=0, min_radius=0.5, root_radius=2.0
+    )
+    with caplog.at_level(logging.WARNING, logger="vesselflow"):
+        graph = vesselflow.skeletonize(mask)
+    assert graph.info["stalled"] is True
+    assert graph.info["converged"] is False
+    assert graph.info["iterations"] < graph.params["max_iterations"]
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING]

@@ -33,7 +33,7 @@ pub(crate) enum Task {
 
 /// The parsed command line, or what to do instead of running.
 pub(crate) enum Parsed {
-    Run(Task, Verbosity),
+    Run(Box<Task>, Verbosity),
     /// `--help`, `--version`, or a bare `vesselflow`: print `text` and exit with `code`.
     Exit {
         text: String,
@@ -169,7 +169,7 @@ where
         },
         _ => return Err(Failure::Usage("no command given (try --help)".to_string())),
     };
-    Ok(Parsed::Run(task, verbosity))
+    Ok(Parsed::Run(Box::new(task), verbosity))
 }
 
 /// Help and version go to stdout with success; every parse error becomes one line.

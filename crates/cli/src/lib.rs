@@ -133,7 +133,7 @@ where
             }
             Ok(code)
         }
-        Parsed::Run(task, verbosity) => execute(task, verbosity, interrupted).map(|()| 0),
+        Parsed::Run(task, verbosity) => execute(*task, verbosity, interrupted).map(|()| 0),
     });
     match outcome {
         Ok(code) => code,
@@ -210,7 +210,11 @@ fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bo
                 info.foreground_voxels,
                 GraphSummary::of(&skel),
                 info.iterations,
-                if info.converged { "converged" } else { "not converged: hit max_iterations" },
+                match (info.converged, info.stalled) {
+                    (true, _) => "converged",
+                    (_, true) => "stalled near convergence",
+                    _ => "not converged: hit max_iterations",
+                },
             );
             std::io::stdout()
                 .lock()

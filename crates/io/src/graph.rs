@@ -72,6 +72,7 @@ pub fn run_info_json(info: &RunInfo) -> Value {
         "mask_components": info.mask_components,
         "iterations": info.iterations,
         "converged": info.converged,
+        "stalled": info.stalled,
         "refine_iterations": info.refine_iterations,
         "refine_converged": info.refine_converged,
         "nodes_per_iteration": info.nodes_per_iteration,

@@ -32,6 +32,7 @@ fn skeleton() -> Skeleton {
             mask_components: 1,
             iterations: 3,
             converged: true,
+            stalled: false,
             refine_iterations: 2,
             refine_converged: false,
             nodes_per_iteration: vec![1234, 400, 50, 4],
@@ -66,6 +67,7 @@ fn check_info(info: &Value, expected: &RunInfo) {
     assert_eq!(info["mask_components"], 1);
     assert_eq!(info["iterations"], 3);
     assert_eq!(info["converged"], true);
+    assert_eq!(info["stalled"], false);
     assert_eq!(info["refine_iterations"], 2);
     assert_eq!(info["refine_converged"], false);
     assert_eq!(info["nodes_per_iteration"], serde_json::json!(expected.nodes_per_iteration));
@@ -80,7 +82,7 @@ fn check_info(info: &Value, expected: &RunInfo) {
     for ((k, v), (wk, wv)) in stages.iter().zip(&want) {
         assert_eq!((k.as_str(), *v), (wk.as_str(), *wv), "stage order and values");
     }
-    assert_eq!(info.as_object().unwrap().len(), 12, "every RunInfo field, nothing else");
+    assert_eq!(info.as_object().unwrap().len(), 13, "every RunInfo field, nothing else");
 }
 
 fn check_params(params: &Value) {
