@@ -327,23 +327,15 @@ mod tests {
     fn triangles_and_squares_are_the_ones_the_search_finds() {
         // Random graphs dense in short cycles; every edge's cycle, by the fast path
         // and by the breadth-first search alone, is the same node sequence.
-        let mut state = 3u64;
-        let mut rnd = move |m: u64| {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (state >> 33) % m
-        };
+        let mut rnd = crate::test_rng(3);
         for (n, per_node) in [(12usize, 3usize), (60, 2), (400, 3), (2000, 1)] {
-            let mut edges: Vec<(u32, u32)> = (0..per_node * n)
-                .map(|_| {
+            let (g, edges) = crate::test_graph(
+                n,
+                (0..per_node * n).map(|_| {
                     let a = rnd(n as u64);
                     (a as u32, ((a + 1 + rnd(6)) % n as u64) as u32)
-                })
-                .filter(|(a, b)| a != b)
-                .map(|(a, b)| (a.min(b), a.max(b)))
-                .collect();
-            edges.sort_unstable();
-            edges.dedup();
-            let g = Csr::from_sorted_edges(n, &edges);
+                }),
+            );
             let (mut fast, mut slow) = (Search::new(), Search::new());
             let mut short = 0;
             for &(u, v) in &edges {

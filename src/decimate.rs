@@ -114,20 +114,7 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
     }
     let clusters = clusters as usize;
     let map: Vec<u32> = cell.iter().map(|&k| cluster_of_cell[k as usize]).collect();
-    // Members of every cluster in increasing node order (counting sort).
-    let mut start = filled(clusters + 1, 0usize);
-    for &m in &map {
-        start[m as usize + 1] += 1;
-    }
-    for k in 0..clusters {
-        start[k + 1] += start[k];
-    }
-    let mut fill = start.clone();
-    let mut members = vec![0u32; n];
-    for (i, &m) in map.iter().enumerate() {
-        members[fill[m as usize]] = i as u32;
-        fill[m as usize] += 1;
-    }
+    let (start, members) = members_by_cluster(&map, clusters);
     let merged: Vec<([f64; 3], f64, u32)> = (0..clusters)
         .into_par_iter()
         .map(|k| {
@@ -151,6 +138,25 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
         radii: merged.iter().map(|m| m.1).collect(),
         component: merged.iter().map(|m| m.2).collect(),
     })
+}
+
+/// The members of every cluster in increasing node order (a counting sort):
+/// cluster `k` holds `members[start[k]..start[k + 1]]`, where `map` gives each node's cluster.
+fn members_by_cluster(map: &[u32], clusters: usize) -> (Vec<usize>, Vec<u32>) {
+    let mut start = filled(clusters + 1, 0usize);
+    for &m in map {
+        start[m as usize + 1] += 1;
+    }
+    for k in 0..clusters {
+        start[k + 1] += start[k];
+    }
+    let mut fill = start.clone();
+    let mut members = vec![0u32; map.len()];
+    for (i, &m) in map.iter().enumerate() {
+        members[fill[m as usize]] = i as u32;
+        fill[m as usize] += 1;
+    }
+    (start, members)
 }
 
 /// The graph of the clusters: cluster `k` (members `members[start[k]..start[k + 1]]`)
@@ -244,45 +250,15 @@ mod tests {
     fn cluster_graph_matches_the_mapped_edge_list() {
         // A random graph and a random clustering: the quotient's rows are the mapped
         // edges without self-loops or repeats, as from the sorted edge list.
-        let mut state = 7u64;
-        let mut rnd = move |m: u64| {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (state >> 33) % m
-        };
+        let mut rnd = crate::test_rng(7);
         for n in [1usize, 5, 300, 9000] {
-            let mut edges: Vec<(u32, u32)> = (0..3 * n)
-                .map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32))
-                .filter(|(a, b)| a != b)
-                .map(|(a, b)| (a.min(b), a.max(b)))
-                .collect();
-            edges.sort_unstable();
-            edges.dedup();
-            let g = Csr::from_sorted_edges(n, &edges);
+            let (g, edges) = crate::test_graph(n, (0..3 * n).map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32)));
             let clusters = 1 + n / 3;
             let map: Vec<u32> =
                 (0..n).map(|i| if i < clusters { i as u32 } else { rnd(clusters as u64) as u32 }).collect();
-            let mut start = vec![0usize; clusters + 1];
-            for &m in &map {
-                start[m as usize + 1] += 1;
-            }
-            for k in 0..clusters {
-                start[k + 1] += start[k];
-            }
-            let mut fill = start.clone();
-            let mut members = vec![0u32; n];
-            for (i, &m) in map.iter().enumerate() {
-                members[fill[m as usize]] = i as u32;
-                fill[m as usize] += 1;
-            }
-            let mut want: Vec<(u32, u32)> = edges
-                .iter()
-                .map(|&(a, b)| (map[a as usize], map[b as usize]))
-                .filter(|(a, b)| a != b)
-                .map(|(a, b)| (a.min(b), a.max(b)))
-                .collect();
-            want.sort_unstable();
-            want.dedup();
-            assert_eq!(quotient(&g, &map, &start, &members), Csr::from_sorted_edges(clusters, &want), "n = {n}");
+            let (start, members) = members_by_cluster(&map, clusters);
+            let (want, _) = crate::test_graph(clusters, edges.iter().map(|&(a, b)| (map[a as usize], map[b as usize])));
+            assert_eq!(quotient(&g, &map, &start, &members), want, "n = {n}");
         }
     }
 

@@ -500,17 +500,13 @@ mod tests {
 
     #[test]
     fn matches_the_definition_on_random_masks() {
-        let mut state = 99u64;
-        let mut rnd = move || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (state >> 33) as u32
-        };
+        let mut rnd = crate::test_rng(99);
         for trial in 0..40 {
-            let shape = (1 + rnd() as usize % 9, 1 + rnd() as usize % 10, 1 + rnd() as usize % 11);
+            let shape = (1 + rnd(9) as usize, 1 + rnd(10) as usize, 1 + rnd(11) as usize);
             // Sparse masks have thin voxels and diagonal-only contacts; dense ones have
             // a large piece and small ones beside it.
             let fill = [8, 20, 35, 60][trial % 4];
-            let mask = Array3::from_shape_fn(shape, |_| u8::from(rnd() % 100 < fill));
+            let mask = Array3::from_shape_fn(shape, |_| u8::from(rnd(100) < fill));
             for connectivity in [Connectivity::Six, Connectivity::Eighteen, Connectivity::TwentySix] {
                 for reconnect_thin in [true, false] {
                     let p = Params { connectivity, reconnect_thin, ..Params::default() };

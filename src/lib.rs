@@ -48,6 +48,27 @@ pub mod solver;
 pub mod volume;
 
 pub use error::{Error, Result};
+
+/// Deterministic pseudo-random integers for the unit tests: `next(m)` lies in `0..m`
+/// (the high bits of a 64-bit linear congruential generator).
+#[cfg(test)]
+pub(crate) fn test_rng(seed: u64) -> impl FnMut(u64) -> u64 {
+    let mut state = seed;
+    move |m| {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 33) % m
+    }
+}
+
+/// For the unit tests: the simple graph on `n` nodes with the given node pairs (loops
+/// dropped, repeats merged), and its sorted edge list.
+#[cfg(test)]
+pub(crate) fn test_graph(n: usize, pairs: impl Iterator<Item = (u32, u32)>) -> (grid::Csr, Vec<(u32, u32)>) {
+    let mut edges: Vec<(u32, u32)> = pairs.filter(|(a, b)| a != b).map(|(a, b)| (a.min(b), a.max(b))).collect();
+    edges.sort_unstable();
+    edges.dedup();
+    (grid::Csr::from_sorted_edges(n, &edges), edges)
+}
 pub use graph::{RunInfo, Skeleton, StageTime};
 pub use params::{Params, Value};
 pub use pipeline::{Progress, Skeletonizer};

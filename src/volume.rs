@@ -214,15 +214,11 @@ mod tests {
 
     #[test]
     fn matches_brute_force_on_random_masks() {
-        let mut state = 12345u64;
-        let mut rnd = || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (state >> 33) as u32
-        };
+        let mut rnd = crate::test_rng(12345);
         for trial in 0..20 {
-            let shape = (1 + rnd() as usize % 7, 1 + rnd() as usize % 8, 1 + rnd() as usize % 9);
-            let fill = 50 + rnd() % 50;
-            let m = Array3::from_shape_fn(shape, |_| u8::from(rnd() % 100 < fill));
+            let shape = (1 + rnd(7) as usize, 1 + rnd(8) as usize, 1 + rnd(9) as usize);
+            let fill = 50 + rnd(50);
+            let m = Array3::from_shape_fn(shape, |_| u8::from(rnd(100) < fill));
             let s = if trial % 2 == 0 { [1.0, 1.0, 1.0] } else { [2.5, 0.7, 1.3] };
             let fast = edt_squared(m.view(), s);
             let slow = slow(&m, s);
