@@ -205,16 +205,15 @@ fn stages(cr: &mut Criterion) {
             NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
         group.bench_with_input(BenchmarkId::new("contract", n), &g, |b, g| b.iter(|| contract_once(g, &p)));
 
-        let twins = g.graph.twins();
         group.bench_with_input(BenchmarkId::new("laplacian", n), &g, |b, g| {
             b.iter(|| {
-                let ln = laplacian::l2_norm(&g.graph, &twins, &g.positions);
-                let lm = laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight);
+                let ln = laplacian::l2_norm(&g.graph, &g.positions);
+                let lm = laplacian::medial(&g.graph, &g.radii, p.medial_weight);
                 (ln, lm, laplacian::skeletal(&g.graph, &g.positions, &p))
             })
         });
-        let ln = laplacian::l2_norm(&g.graph, &twins, &g.positions);
-        let lm = laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight);
+        let ln = laplacian::l2_norm(&g.graph, &g.positions);
+        let lm = laplacian::medial(&g.graph, &g.radii, p.medial_weight);
         let skeletal = laplacian::skeletal(&g.graph, &g.positions, &p);
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, &p);
         group.bench_with_input(BenchmarkId::new("solve", n), &g, |b, g| {

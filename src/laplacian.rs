@@ -22,21 +22,31 @@ pub struct Laplacian {
 }
 
 impl Laplacian {
-    /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`.
-    fn from_affinity(g: &Csr, twins: &[usize], affinity: impl Fn(usize, usize) -> f64 + Sync) -> Laplacian {
-        let mut weight = vec![0f32; g.targets.len()];
-        for_row_blocks(&g.offsets, &mut weight, |rows, out| {
-            let mut e = 0;
-            for i in rows {
-                let nb = g.neighbours(i);
-                let total: f64 = nb.iter().map(|&j| affinity(i, j as usize)).sum();
-                for &j in nb {
-                    out[e] = if total > 0.0 { (affinity(i, j as usize) / total) as f32 } else { 0.0 };
-                    e += 1;
+    /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`. The
+    /// transposed weight of entry `i → j` is row `j`'s weight of `i`, computed from `j`'s
+    /// row total as row `j` computes it, so no map between an entry and its twin is
+    /// needed.
+    fn from_affinity(g: &Csr, affinity: impl Fn(usize, usize) -> f64 + Sync) -> Laplacian {
+        let total: Vec<f64> = (0..g.nodes())
+            .into_par_iter()
+            .map(|i| g.neighbours(i).iter().map(|&j| affinity(i, j as usize)).sum())
+            .collect();
+        let weight_of = |i: usize, j: usize| if total[i] > 0.0 { (affinity(i, j) / total[i]) as f32 } else { 0.0 };
+        let per_entry = |w: &(dyn Fn(usize, usize) -> f32 + Sync)| {
+            let mut out = vec![0f32; g.targets.len()];
+            for_row_blocks(&g.offsets, &mut out, |rows, out| {
+                let mut e = 0;
+                for i in rows {
+                    for &j in g.neighbours(i) {
+                        out[e] = w(i, j as usize);
+                        e += 1;
+                    }
                 }
-            }
-        });
-        let weight_t = twins.par_iter().map(|&t| weight[t]).collect();
+            });
+            out
+        };
+        let weight = per_entry(&|i, j| weight_of(i, j));
+        let weight_t = per_entry(&|i, j| weight_of(j, i));
         let diagonal = (0..g.nodes())
             .into_par_iter()
             .map(|i| if weight[g.offsets[i]..g.offsets[i + 1]].iter().any(|&w| w > 0.0) { -1.0 } else { 0.0 })
@@ -51,16 +61,16 @@ fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 }
 
 /// l2-norm Laplacian: `W_ij = |p_i - p_j| / sum_k |p_i - p_k|` (eq. 2).
-pub fn l2_norm(g: &Csr, twins: &[usize], positions: &[[f64; 3]]) -> Laplacian {
-    Laplacian::from_affinity(g, twins, |i, j| distance(&positions[i], &positions[j]))
+pub fn l2_norm(g: &Csr, positions: &[[f64; 3]]) -> Laplacian {
+    Laplacian::from_affinity(g, |i, j| distance(&positions[i], &positions[j]))
 }
 
 /// Medial Laplacian: `W_ij = r_j / sum_k r_k` (the authors' code, default) or
 /// `|r_i - r_j| / sum_k |r_i - r_k|` (eq. 3).
-pub fn medial(g: &Csr, twins: &[usize], radii: &[f64], kind: MedialWeight) -> Laplacian {
+pub fn medial(g: &Csr, radii: &[f64], kind: MedialWeight) -> Laplacian {
     match kind {
-        MedialWeight::Radius => Laplacian::from_affinity(g, twins, |_, j| radii[j]),
-        MedialWeight::Difference => Laplacian::from_affinity(g, twins, |i, j| (radii[i] - radii[j]).abs()),
+        MedialWeight::Radius => Laplacian::from_affinity(g, |_, j| radii[j]),
+        MedialWeight::Difference => Laplacian::from_affinity(g, |i, j| (radii[i] - radii[j]).abs()),
     }
 }
 
@@ -131,7 +141,7 @@ mod tests {
     fn l2_weights_are_row_normalised_and_transposed() {
         let g = path(3);
         let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [4.0, 0.0, 0.0]];
-        let l = l2_norm(&g, &g.twins(), &p);
+        let l = l2_norm(&g, &p);
         // Row 1: neighbours at distance 1 and 3.
         assert_eq!(&l.weight[1..3], &[0.25, 0.75]);
         assert_eq!(l.weight[0], 1.0);
@@ -141,13 +151,32 @@ mod tests {
     }
 
     #[test]
+    fn transposed_weights_are_the_twins_weights() {
+        // A random graph with random geometry: entry i → j of `weight_t` holds the
+        // weight that row j gives i, bit for bit, for every weighting.
+        let mut rnd = crate::test_rng(11);
+        let n = 500;
+        let (g, _) = crate::test_graph(n, (0..4 * n).map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32)));
+        let p: Vec<[f64; 3]> = (0..n).map(|_| [0; 3].map(|_| rnd(1000) as f64 / 7.0)).collect();
+        let r: Vec<f64> = (0..n).map(|_| rnd(50) as f64 / 9.0).collect();
+        for l in [l2_norm(&g, &p), medial(&g, &r, MedialWeight::Radius), medial(&g, &r, MedialWeight::Difference)] {
+            for i in 0..n {
+                for (e, &j) in (g.offsets[i]..).zip(g.neighbours(i)) {
+                    let back = g.offsets[j as usize] + g.neighbours(j as usize).binary_search(&(i as u32)).unwrap();
+                    assert_eq!(l.weight_t[e].to_bits(), l.weight[back].to_bits());
+                }
+            }
+        }
+    }
+
+    #[test]
     fn zero_rows_get_no_pull() {
         let g = path(3);
         let r = [2.0, 2.0, 2.0];
-        let l = medial(&g, &g.twins(), &r, MedialWeight::Difference);
+        let l = medial(&g, &r, MedialWeight::Difference);
         assert!(l.weight.iter().all(|&w| w == 0.0));
         assert_eq!(l.diagonal, vec![0.0; 3]);
-        let l = medial(&g, &g.twins(), &[1.0, 3.0, 1.0], MedialWeight::Radius);
+        let l = medial(&g, &[1.0, 3.0, 1.0], MedialWeight::Radius);
         assert_eq!(l.weight[0], 1.0);
         assert_eq!(&l.weight[1..3], &[0.5, 0.5]);
     }

@@ -71,15 +71,11 @@ fn report(
 /// of each part added to `clock`. Runs on the current rayon pool.
 pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageClock) -> Result<(NodeGraph, SolveStats)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
-    // The Laplacians (and the twins they are built with) are dropped once the system
-    // is assembled, before the conjugate-gradient vectors are allocated.
+    // The Laplacians are dropped once the system is assembled, before the
+    // conjugate-gradient vectors are allocated.
     let (m, r) = {
         let (ln, lm) = clock.time("laplacian", || {
-            let twins = g.graph.twins();
-            (
-                laplacian::l2_norm(&g.graph, &twins, &g.positions),
-                laplacian::medial(&g.graph, &twins, &g.radii, p.medial_weight),
-            )
+            (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
         clock.time("solve", || solver::system(&op, &g.positions))

@@ -314,9 +314,8 @@ mod tests {
 
     impl Problem {
         fn new(g: Csr, p: Vec<V3>, radii: &[f64], w: Vec<f64>) -> Problem {
-            let tw = g.twins();
-            let ln = l2_norm(&g, &tw, &p);
-            let lm = medial(&g, &tw, radii, MedialWeight::Radius);
+            let ln = l2_norm(&g, &p);
+            let lm = medial(&g, radii, MedialWeight::Radius);
             Problem { g, p, ln, lm, w }
         }
 
@@ -686,9 +685,8 @@ mod harness {
         let (_, stats) = pool.install(|| contract_step(g.clone(), &p, 1.0, &mut clock)).unwrap();
         let dt = t.elapsed().as_secs_f64();
         if std::env::var("VF_COMPARE").is_ok() {
-            let tw = g.graph.twins();
-            let ln = crate::laplacian::l2_norm(&g.graph, &tw, &g.positions);
-            let lm = crate::laplacian::medial(&g.graph, &tw, &g.radii, p.medial_weight);
+            let ln = crate::laplacian::l2_norm(&g.graph, &g.positions);
+            let lm = crate::laplacian::medial(&g.graph, &g.radii, p.medial_weight);
             let sk = crate::laplacian::skeletal(&g.graph, &g.positions, &p);
             let op = super::NormalOperator::new(&g.graph, &ln, &lm, &sk, &p);
             {
