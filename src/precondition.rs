@@ -71,15 +71,6 @@ impl Stripe {
         Stripe { lower_at: vec![0], upper_at: vec![0], ..Stripe::default() }
     }
 
-    /// Give back the room the vectors grew into beyond their length.
-    fn shrink_to_fit(&mut self) {
-        self.lower.shrink_to_fit();
-        self.upper.shrink_to_fit();
-        self.lower_at.shrink_to_fit();
-        self.upper_at.shrink_to_fit();
-        self.cuts.shrink_to_fit();
-    }
-
     /// Append row `j` (entries in increasing column order; its diagonal is skipped),
     /// split at its Gauss–Seidel block of `block` rows.
     fn push_row(&mut self, j: usize, block: usize, row: impl Iterator<Item = (u32, f32)>) {
@@ -168,33 +159,32 @@ impl NormalMatrix {
     pub fn assemble(op: &NormalOperator<'_>) -> NormalMatrix {
         let n = op.graph.nodes();
         let block = n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK);
-        let slots = PerThread::new(|| filled(n, 0u32));
-        let built: Vec<(Stripe, Vec<f64>)> = (0..n.div_ceil(ROW_BLOCK))
-            .into_par_iter()
-            .map(|b| {
-                slots.with(|slot| {
-                    let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n);
-                    let mut acc = Vec::with_capacity(64);
-                    let (mut stripe, mut diag) = (Stripe::new(), Vec::with_capacity(rows.len()));
-                    for j in rows {
-                        row(op, j, &mut acc, slot);
+        // Per worker: the column slots, a row accumulator and a stripe to build in, whose
+        // contents are then copied to vectors of exactly their length (a stripe grown
+        // in place would keep up to twice its size).
+        let scratch = PerThread::new(|| (filled(n, 0u32), Vec::with_capacity(64), Stripe::new()));
+        let mut diag = filled(n, 0.0);
+        let stripes = diag
+            .par_chunks_mut(ROW_BLOCK)
+            .enumerate()
+            .map(|(b, diag)| {
+                scratch.with(|(slot, acc, stripe)| {
+                    *stripe = Stripe::new();
+                    for (t, d) in diag.iter_mut().enumerate() {
+                        let j = b * ROW_BLOCK + t;
+                        row(op, j, acc, slot);
                         // `M` is positive semi-definite, so a non-positive diagonal
                         // means an all-zero row and column (or an anchor below f32
                         // range): give it a unit diagonal, which keeps that node in
                         // place and the preconditioner positive definite.
-                        let at = acc.partition_point(|e| (e.0 as usize) < j);
-                        let d = acc[at].1 as f32;
-                        diag.push(if d.is_nan() || d <= 0.0 { 1.0 } else { d as f64 });
+                        let m = acc[acc.partition_point(|e| (e.0 as usize) < j)].1 as f32;
+                        *d = if m.is_nan() || m <= 0.0 { 1.0 } else { m as f64 };
                         stripe.push_row(j, block, acc.iter().map(|e| (e.0, e.1 as f32)));
                     }
-                    stripe.shrink_to_fit();
-                    (stripe, diag)
+                    stripe.clone()
                 })
             })
             .collect();
-        drop(slots);
-        let diag = (0..n).into_par_iter().map(|j| built[j / ROW_BLOCK].1[j % ROW_BLOCK]).collect();
-        let stripes = built.into_iter().map(|(stripe, _)| stripe).collect();
         NormalMatrix { diag, block, stripes }
     }
 
