@@ -355,8 +355,10 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
     let voxel = |node: usize| rows.voxel(node_rows[node], node);
     let positions = (0..n)
         .into_par_iter()
-        .map(|node| voxel(node).map(|v| v as f64))
-        .map(|v| std::array::from_fn(|d| v[d] * spacing[d]))
+        .map(|node| {
+            let v = voxel(node);
+            std::array::from_fn(|d| v[d] as f64 * spacing[d])
+        })
         .collect();
     let radii = (0..n)
         .into_par_iter()

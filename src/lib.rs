@@ -48,6 +48,10 @@ pub mod solver;
 pub mod volume;
 
 pub use error::{Error, Result};
+pub use graph::{RunInfo, Skeleton, StageTime};
+pub use params::{Params, Value};
+pub use pipeline::{Progress, Skeletonizer};
+pub use volume::Voxel;
 
 /// Deterministic pseudo-random integers for the unit tests: `next(m)` lies in `0..m`
 /// (the high bits of a 64-bit linear congruential generator).
@@ -69,7 +73,3 @@ pub(crate) fn test_graph(n: usize, pairs: impl Iterator<Item = (u32, u32)>) -> (
     edges.dedup();
     (grid::Csr::from_sorted_edges(n, &edges), edges)
 }
-pub use graph::{RunInfo, Skeleton, StageTime};
-pub use params::{Params, Value};
-pub use pipeline::{Progress, Skeletonizer};
-pub use volume::Voxel;
