@@ -2,14 +2,15 @@
 //! preconditioner, used by the contraction solve (METHOD.md §2.4).
 //!
 //! `M = alpha² LnᵀLn + beta² LmᵀLm + Wg²` couples nodes up to two hops apart (about
-//! 21 entries per row on a 6-connected grid). Assembled once per contraction
-//! iteration, one product `M x` reads those entries once for the three coordinates,
-//! which is less memory traffic than the matrix-free `Lᵀ(L x)` (four passes over the
-//! CSR weights and two scratch vectors), and it makes a Gauss–Seidel preconditioner
-//! possible: symmetric Gauss–Seidel on `M` cuts the conjugate-gradient iterations of
-//! the first contraction iteration about 2.5× against Jacobi, the largest
-//! cut per product we measured (smoothed-aggregation multigrid cut iterations further
-//! but costs more products per iteration; see the solver's notes).
+//! 21 entries per row on a 6-connected grid, of which about 11.4 are stored: each
+//! in-block symmetric pair once). Assembled once per contraction iteration, one
+//! preconditioned iteration reads each stored entry about twice for the three
+//! coordinates, which is less memory traffic than the matrix-free `Lᵀ(L x)` (four
+//! passes over the CSR weights and two scratch vectors), and it makes a Gauss–Seidel
+//! preconditioner possible: symmetric Gauss–Seidel on `M` cuts the conjugate-gradient
+//! iterations of the first contraction iteration about 2.5× against Jacobi, the
+//! largest cut per product we measured (smoothed-aggregation multigrid cut iterations
+//! further but costs more products per iteration; see the solver's notes).
 //!
 //! Parallelism without a thread-dependent result: the rows are split into fixed
 //! contiguous blocks (their number depends only on the node count), each block is
@@ -19,24 +20,27 @@
 use crate::grid::{filled, Csr, PerThread, ROW_BLOCK};
 use crate::solver::NormalOperator;
 use rayon::prelude::*;
+use std::ops::Range;
 
 type V3 = [f64; 3];
 
-/// Rows per parallel chunk of the product `M x` and its fused dot product.
-const CHUNK: usize = 8192;
 /// Fewest rows in a Gauss–Seidel block (thin blocks lose coupling and iterations grow).
 const MIN_BLOCK: usize = 32_768;
 /// Most Gauss–Seidel blocks: enough to balance a few threads.
 const MAX_BLOCKS: usize = 16;
 
 /// `M`, stored for the Gauss–Seidel sweeps. Its rows are cut into fixed contiguous
-/// blocks; row `j` of block `[lo, hi)` has entries in earlier blocks (`k < lo`), in-block
-/// lower entries (`lo <= k < j`), the diagonal, in-block upper entries (`j < k < hi`)
-/// and entries in later blocks (`k >= hi`). The forward sweeps read every off-diagonal
-/// entry but the in-block upper ones, the backward sweep only those, so each kind is
-/// stored on its own, row after row in increasing column order, as (column, value)
-/// pairs: every sweep streams one array front to back, skipping nothing. Values are
-/// `f32`, like the Laplacian weights they are built from; arithmetic is `f64`.
+/// blocks; row `j` of block `[lo, hi)` has entries in other blocks (`k < lo` or
+/// `k >= hi`), in-block lower entries (`lo <= k < j`), the diagonal and in-block upper
+/// entries (`j < k < hi`). `M` is exactly symmetric (see `row`), so only one of each
+/// in-block pair is stored: row `j`'s in-block lower entries are the upper entries
+/// `M_kj` of the rows `k < j` of its block. The backward sweep reads the upper entries
+/// row by row; the forward sweeps read them column by column (once row `k` is solved,
+/// it adds its part to the rows after it), which streams the same array in the same
+/// order. Entries in other blocks are stored in both their rows. Each kind is stored on
+/// its own, row after row in increasing column order, as (column, value) pairs: every
+/// sweep streams one array front to back, skipping nothing. Values are `f32`, like the
+/// Laplacian weights they are built from; arithmetic is `f64`.
 ///
 /// The rows are kept in stripes of [`ROW_BLOCK`] rows, each built by one parallel task
 /// and never copied: no serial concatenation, and the pages of each stripe are first
@@ -45,22 +49,18 @@ const MAX_BLOCKS: usize = 16;
 pub struct NormalMatrix {
     /// The diagonal `D_j = M_jj` (as stored), positive.
     pub diag: Vec<f64>,
-    /// Rows per Gauss–Seidel block (the last block may be shorter): set from the row
-    /// count alone by [`NormalMatrix::assemble`], changed by [`NormalMatrix::set_block`].
+    /// Rows per Gauss–Seidel block (the last block may be shorter).
     block: usize,
     /// Rows `s * ROW_BLOCK..` in stripe `s`.
     stripes: Vec<Stripe>,
 }
 
-/// Consecutive rows of `M` without their diagonal, split for the sweeps.
+/// Consecutive rows of `M` without their diagonal and in-block lower entries.
 #[derive(Debug, Clone, Default)]
 struct Stripe {
-    /// Row `t`'s entries outside the in-block upper part: `lower[lower_at[t]..lower_at[t + 1]]`,
-    /// cut at `cuts[t] = [b, e]` (from the row's start) into earlier blocks `..b`,
-    /// in-block lower `b..e` and later blocks `e..`.
-    lower: Vec<(u32, f32)>,
-    lower_at: Vec<usize>,
-    cuts: Vec<[u32; 2]>,
+    /// Row `t`'s entries in other blocks: `outer[outer_at[t]..outer_at[t + 1]]`.
+    outer: Vec<(u32, f32)>,
+    outer_at: Vec<usize>,
     /// Row `t`'s in-block upper entries: `upper[upper_at[t]..upper_at[t + 1]]`.
     upper: Vec<(u32, f32)>,
     upper_at: Vec<usize>,
@@ -68,34 +68,22 @@ struct Stripe {
 
 impl Stripe {
     fn new() -> Stripe {
-        Stripe { lower_at: vec![0], upper_at: vec![0], ..Stripe::default() }
+        Stripe { outer_at: vec![0], upper_at: vec![0], ..Stripe::default() }
     }
 
-    /// Append row `j` (entries in increasing column order; its diagonal is skipped),
-    /// split at its Gauss–Seidel block of `block` rows.
+    /// Append row `j` (entries in increasing column order) of a matrix in Gauss–Seidel
+    /// blocks of `block` rows: its entries in other blocks and its in-block upper ones.
     fn push_row(&mut self, j: usize, block: usize, row: impl Iterator<Item = (u32, f32)>) {
-        let (lo, hi) = ((j / block * block) as u32, ((j / block + 1) * block) as u32);
-        let start = self.lower.len();
-        let mut cuts = [u32::MAX; 2];
+        let (lo, hi) = (j / block * block, (j / block + 1) * block);
         for (k, v) in row {
-            if k == j as u32 {
-                continue;
-            }
-            if k >= lo && cuts[0] == u32::MAX {
-                cuts[0] = (self.lower.len() - start) as u32;
-            }
-            if k > j as u32 && k < hi {
+            let col = k as usize;
+            if col < lo || col >= hi {
+                self.outer.push((k, v));
+            } else if col > j {
                 self.upper.push((k, v));
-                continue;
             }
-            if k >= hi && cuts[1] == u32::MAX {
-                cuts[1] = (self.lower.len() - start) as u32;
-            }
-            self.lower.push((k, v));
         }
-        let len = (self.lower.len() - start) as u32;
-        self.cuts.push(cuts.map(|c| c.min(len)));
-        self.lower_at.push(self.lower.len());
+        self.outer_at.push(self.outer.len());
         self.upper_at.push(self.upper.len());
     }
 }
@@ -114,13 +102,15 @@ fn gather(entries: &[(u32, f32)], x: &[V3], mut acc: V3) -> V3 {
 
 /// Row `j` of `M`: `M_jk = sum_i (a² Ln_ij Ln_ik + b² Lm_ij Lm_ik) + [j = k] Wg_j²`,
 /// `i` over `j` and its neighbours (the rows of `L` with an entry in column `j`).
-/// `slot` (one per node, all 0 on entry and on return) maps a column to its place in
-/// `acc` plus one.
-fn row(op: &NormalOperator<'_>, j: usize, acc: &mut Vec<(u32, f64)>, slot: &mut [u32]) {
+/// Columns in `skip` are left out (each entry's value does not depend on which others
+/// are computed). `slot` (one per node, all 0 on entry and on return) maps a column to
+/// its place in `acc` plus one.
+fn row(op: &NormalOperator<'_>, j: usize, skip: Range<u32>, acc: &mut Vec<(u32, f64)>, slot: &mut [u32]) {
     let g: &Csr = op.graph;
     let (ln, lm) = (op.ln, op.lm);
     acc.clear();
     let mut add = |k: u32, v: f64| match slot[k as usize] {
+        _ if skip.contains(&k) => {}
         0 => {
             acc.push((k, v));
             slot[k as usize] = acc.len() as u32;
@@ -155,10 +145,16 @@ fn row(op: &NormalOperator<'_>, j: usize, acc: &mut Vec<(u32, f64)>, slot: &mut 
 }
 
 impl NormalMatrix {
-    /// Assemble `M` of `op`.
+    /// Assemble `M` of `op`, in Gauss–Seidel blocks whose size depends on the row count
+    /// alone.
     pub fn assemble(op: &NormalOperator<'_>) -> NormalMatrix {
         let n = op.graph.nodes();
-        let block = n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK);
+        NormalMatrix::assemble_in_blocks(op, n.div_ceil(MAX_BLOCKS).max(MIN_BLOCK))
+    }
+
+    /// Assemble `M` of `op` in Gauss–Seidel blocks of `block` rows (at least 1).
+    pub fn assemble_in_blocks(op: &NormalOperator<'_>, block: usize) -> NormalMatrix {
+        let (n, block) = (op.graph.nodes(), block.max(1));
         // Per worker: the column slots, a row accumulator and a stripe to build in, whose
         // contents are then copied to vectors of exactly their length (a stripe grown
         // in place would keep up to twice its size).
@@ -172,7 +168,9 @@ impl NormalMatrix {
                     *stripe = Stripe::new();
                     for (t, d) in diag.iter_mut().enumerate() {
                         let j = b * ROW_BLOCK + t;
-                        row(op, j, acc, slot);
+                        // The in-block lower entries are not stored (the rows before
+                        // hold them), so they are not computed either.
+                        row(op, j, (j / block * block) as u32..j as u32, acc, slot);
                         // `M` is positive semi-definite, so a non-positive diagonal
                         // means an all-zero row and column (or an anchor below f32
                         // range): give it a unit diagonal, which keeps that node in
@@ -188,51 +186,22 @@ impl NormalMatrix {
         NormalMatrix { diag, block, stripes }
     }
 
-    /// Rows per Gauss–Seidel block.
-    pub fn block(&self) -> usize {
-        self.block
-    }
-
-    /// Use Gauss–Seidel blocks of `rows` rows (at least 1).
-    pub fn set_block(&mut self, rows: usize) {
-        let (n, block) = (self.rows(), rows.max(1));
-        let stripes = (0..n.div_ceil(ROW_BLOCK))
-            .into_par_iter()
-            .map(|b| {
-                let mut stripe = Stripe::new();
-                for j in b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(n) {
-                    stripe.push_row(j, block, self.entries(j).into_iter().map(|(k, v)| (k, v as f32)));
-                }
-                stripe
-            })
-            .collect();
-        (self.block, self.stripes) = (block, stripes);
-    }
-
     /// Number of rows.
     pub fn rows(&self) -> usize {
         self.diag.len()
     }
 
-    /// Row `j`'s entries `(column, M_jk)` in increasing column order, its diagonal included.
-    pub fn entries(&self, j: usize) -> Vec<(u32, f64)> {
-        let (lower, _, e) = self.forward_row(j);
-        let wide = |x: &[(u32, f32)]| x.iter().map(|&(k, v)| (k, v as f64)).collect::<Vec<_>>();
-        let mut row = wide(&lower[..e]);
-        row.push((j as u32, self.diag[j]));
-        row.extend(wide(self.upper_entries(j)));
-        row.extend(wide(&lower[e..]));
-        debug_assert!(row.windows(2).all(|w| w[0].0 < w[1].0));
-        row
+    /// Entries stored, the diagonal included (each in-block pair once).
+    #[cfg(test)]
+    pub fn stored_entries(&self) -> usize {
+        self.rows() + self.stripes.iter().map(|s| s.outer.len() + s.upper.len()).sum::<usize>()
     }
 
-    /// Row `j`'s entries but the diagonal and the in-block upper ones, with the ends
-    /// `b`, `e` of its earlier-block and in-block lower parts.
+    /// Row `j`'s entries in other Gauss–Seidel blocks.
     #[inline]
-    fn forward_row(&self, j: usize) -> (&[(u32, f32)], usize, usize) {
+    fn outer_entries(&self, j: usize) -> &[(u32, f32)] {
         let (s, t) = (&self.stripes[j / ROW_BLOCK], j % ROW_BLOCK);
-        let [b, e] = s.cuts[t];
-        (&s.lower[s.lower_at[t]..s.lower_at[t + 1]], b as usize, e as usize)
+        &s.outer[s.outer_at[t]..s.outer_at[t + 1]]
     }
 
     /// Row `j`'s in-block upper entries.
@@ -242,32 +211,28 @@ impl NormalMatrix {
         &s.upper[s.upper_at[t]..s.upper_at[t + 1]]
     }
 
-    /// Row `j`'s in-block lower entries.
-    #[inline]
-    fn lower_entries(&self, j: usize) -> &[(u32, f32)] {
-        let (lower, b, e) = self.forward_row(j);
-        &lower[b..e]
-    }
-
-    /// `y = M x`, returning the per-coordinate dot products `x · y` (summed over
-    /// fixed chunks in order).
+    /// `y = M x`, returning the per-coordinate dot products `x · y` (summed per block in
+    /// order). The reference product for tests and measurements; the solver needs none.
     pub fn apply_dot(&self, x: &[V3], y: &mut [V3]) -> V3 {
+        let bs = self.block;
         let parts: Vec<V3> = y
-            .par_chunks_mut(CHUNK)
+            .par_chunks_mut(bs)
             .enumerate()
-            .map(|(c, ys)| {
+            .map(|(b, ys)| {
+                let lo = b * bs;
+                ys.fill([0.0; 3]);
+                // Row `j`'s in-block lower part has arrived from the rows before it.
+                for j in lo..lo + ys.len() {
+                    let own = gather(self.upper_entries(j), x, x[j].map(|v| self.diag[j] * v));
+                    let own = gather(self.outer_entries(j), x, own);
+                    let yj = &mut ys[j - lo];
+                    *yj = std::array::from_fn(|c| yj[c] + own[c]);
+                    scatter(self.upper_entries(j), ys, lo, x[j], 1.0);
+                }
                 let mut dot = [0.0; 3];
-                for (t, yj) in ys.iter_mut().enumerate() {
-                    let j = c * CHUNK + t;
-                    let mut s = [0.0; 3];
-                    for (k, m) in self.entries(j) {
-                        for d in 0..3 {
-                            s[d] += m * x[k as usize][d];
-                        }
-                    }
-                    *yj = s;
-                    for d in 0..3 {
-                        dot[d] += x[j][d] * s[d];
+                for (yj, xj) in ys.iter().zip(&x[lo..]) {
+                    for c in 0..3 {
+                        dot[c] += xj[c] * yj[c];
                     }
                 }
                 dot
@@ -278,12 +243,12 @@ impl NormalMatrix {
 
     /// Block symmetric Gauss–Seidel: `z = (D + U)⁻¹ D (D + L)⁻¹ r` with `L`, `D`,
     /// `U` the strictly lower, diagonal and strictly upper parts of the block-diagonal
-    /// part of `M` (blocks of [`NormalMatrix::block`] rows). Symmetric positive
-    /// definite (`D > 0`), so plain conjugate gradients stay valid. Returns `r · z` per
-    /// coordinate, summed per block in order. The solver applies the same
-    /// preconditioner in Eisenstat's form ([`NormalMatrix::forward`],
-    /// [`NormalMatrix::backward`], [`NormalMatrix::forward_product`]); this explicit
-    /// form is the reference its tests check against.
+    /// part of `M` (blocks of `block` rows). Symmetric positive definite (`D > 0`), so
+    /// plain conjugate gradients stay valid. Returns `r · z` per coordinate, summed per
+    /// block in order. The solver applies the same preconditioner in Eisenstat's form
+    /// ([`NormalMatrix::forward`], [`NormalMatrix::backward`],
+    /// [`NormalMatrix::forward_product`]); this explicit form is the reference its tests
+    /// check against.
     pub fn sgs_dot(&self, r: &[V3], z: &mut [V3]) -> V3 {
         let bs = self.block;
         z.copy_from_slice(r);
@@ -311,16 +276,18 @@ impl NormalMatrix {
         parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
     }
 
-    /// `y ← (D + L)⁻¹ y` (block lower triangular solve, in place: row `j` reads its own
-    /// right-hand side before it writes, and earlier rows are solved by then).
+    /// `y ← (D + L)⁻¹ y` (block lower triangular solve, in place, column by column:
+    /// once row `j` is solved, its in-block upper entries `M_jk = L_kj` take their part
+    /// from the rows `k` after it, so each row has all of its part when its turn comes).
     pub fn forward(&self, y: &mut [V3]) {
         let bs = self.block;
         y.par_chunks_mut(bs).enumerate().for_each(|(b, ys)| {
             let lo = b * bs;
             for j in lo..lo + ys.len() {
-                let t = gather_local(self.lower_entries(j), ys, lo, ys[j - lo], -1.0);
                 let inv = 1.0 / self.diag[j];
-                ys[j - lo] = [t[0] * inv, t[1] * inv, t[2] * inv];
+                let yj = ys[j - lo].map(|t| t * inv);
+                ys[j - lo] = yj;
+                scatter(self.upper_entries(j), ys, lo, yj, -1.0);
             }
         });
     }
@@ -328,17 +295,21 @@ impl NormalMatrix {
     /// Eisenstat's first half, with the previous iteration's update folded in: per row
     /// `x += step s`, `y -= step w` (the new residual's forward solve), `ŝ ← D y + beta ŝ`,
     /// then `s = (D + U)⁻¹ ŝ` (block upper triangular solve), so that `s = z + beta s_old`
-    /// for the Gauss–Seidel `z` of the new residual.
-    pub fn backward(&self, k: &mut Krylov, step: V3, beta: V3) {
+    /// for the Gauss–Seidel `z` of the new residual. `w` is left zero, ready for
+    /// [`NormalMatrix::forward_product`]. Returns, per coordinate and summed per block in
+    /// order, `[s · ŝ, s · U s]`.
+    pub fn backward(&self, k: &mut Krylov, step: V3, beta: V3) -> [V3; 2] {
         let bs = self.block;
         let Krylov { x, y, hat, s, w } = k;
-        x.par_chunks_mut(bs)
+        let parts: Vec<[V3; 2]> = x
+            .par_chunks_mut(bs)
             .zip(y.par_chunks_mut(bs))
             .zip(hat.par_chunks_mut(bs).zip(s.par_chunks_mut(bs)))
-            .zip(w.par_chunks(bs))
+            .zip(w.par_chunks_mut(bs))
             .enumerate()
-            .for_each(|(b, (((xs, ys), (hs, ss)), ws))| {
+            .map(|(b, (((xs, ys), (hs, ss)), ws))| {
                 let lo = b * bs;
+                let mut dots = [[0.0; 3]; 2];
                 for j in (lo..lo + ss.len()).rev() {
                     let t = j - lo;
                     let dj = self.diag[j];
@@ -347,19 +318,30 @@ impl NormalMatrix {
                         ys[t][c] -= step[c] * ws[t][c];
                         hs[t][c] = dj * ys[t][c] + beta[c] * hs[t][c];
                     }
+                    ws[t] = [0.0; 3];
                     let u = gather_local(self.upper_entries(j), ss, lo, hs[t], -1.0);
                     let inv = 1.0 / dj;
                     ss[t] = [u[0] * inv, u[1] * inv, u[2] * inv];
+                    for c in 0..3 {
+                        dots[0][c] += ss[t][c] * hs[t][c];
+                        // `(U s)_j = ŝ_j - u_j`.
+                        dots[1][c] += ss[t][c] * (hs[t][c] - u[c]);
+                    }
                 }
-            });
+                dots
+            })
+            .collect();
+        parts.iter().fold([[0.0; 3]; 2], |a, p| std::array::from_fn(|t| std::array::from_fn(|c| a[t][c] + p[t][c])))
     }
 
-    /// Eisenstat's second half, one pass over the lower and off-block entries:
-    /// `q = M s = ŝ + (L + E) s` (with `(D + U) s = ŝ`, `E` the entries outside the
-    /// blocks) and `w = (D + L)⁻¹ q`, without storing `q`. Returns, per coordinate and
-    /// summed per block in order, `[s · q, y · D y, w · D y, w · D w]`: the step's
-    /// denominator, `r · z` of the current residual, and what `r · z` of the next one
-    /// (forward solve `y - step w`) needs.
+    /// Eisenstat's second half, one pass over the entries: `w = (D + L)⁻¹ M s` with
+    /// `M s = ŝ + (L + E) s` (`(D + U) s = ŝ`, `E` the entries in other blocks), i.e.
+    /// `D w = ŝ + E s - L (w - s)`, solved column by column like
+    /// [`NormalMatrix::forward`] (`w` is zero on entry). Returns, per coordinate and
+    /// summed per block in order, `[s · E s, y · D y, w · D y, w · D w]`: with
+    /// [`NormalMatrix::backward`]'s `s · ŝ + s · U s` (`s · L s = s · U s`, `M` being
+    /// symmetric) the step's denominator `s · M s`, then `r · z` of the current residual,
+    /// and what `r · z` of the next one (forward solve `y - step w`) needs.
     pub fn forward_product(&self, k: &mut Krylov) -> [V3; 4] {
         let bs = self.block;
         let Krylov { y, hat, s, w, .. } = k;
@@ -371,29 +353,20 @@ impl NormalMatrix {
                 let lo = b * bs;
                 let mut dots = [[0.0; 3]; 4];
                 for j in lo..lo + ws.len() {
-                    let (row, b, e) = self.forward_row(j);
-                    let mut qj = gather(&row[..b], s, hat[j]);
-                    let mut wj = [0.0; 3];
-                    for &(k, m) in &row[b..e] {
-                        let (k, m) = (k as usize, m as f64);
-                        let (sk, wk) = (&s[k], &ws[k - lo]);
-                        for c in 0..3 {
-                            qj[c] += m * sk[c];
-                            wj[c] += m * wk[c];
-                        }
-                    }
-                    let qj = gather(&row[e..], s, qj);
+                    let e = gather(self.outer_entries(j), s, [0.0; 3]);
                     let dj = self.diag[j];
                     let inv = 1.0 / dj;
+                    let acc = ws[j - lo];
+                    let wj: V3 = std::array::from_fn(|c| (hat[j][c] + e[c] - acc[c]) * inv);
                     for c in 0..3 {
-                        wj[c] = (qj[c] - wj[c]) * inv;
                         let (dy, dw) = (dj * y[j][c], dj * wj[c]);
-                        dots[0][c] += s[j][c] * qj[c];
+                        dots[0][c] += s[j][c] * e[c];
                         dots[1][c] += dy * y[j][c];
                         dots[2][c] += dw * y[j][c];
                         dots[3][c] += dw * wj[c];
                     }
                     ws[j - lo] = wj;
+                    scatter(self.upper_entries(j), ws, lo, std::array::from_fn(|c| wj[c] - s[j][c]), 1.0);
                 }
                 dots
             })
@@ -439,4 +412,16 @@ fn gather_local(entries: &[(u32, f32)], x: &[V3], lo: usize, mut acc: V3, sign: 
         }
     }
     acc
+}
+
+/// `x_k += sign * m_jk v` for the given entries of row `j`, in a block whose values `x`
+/// start at row `lo`.
+#[inline]
+fn scatter(entries: &[(u32, f32)], x: &mut [V3], lo: usize, v: V3, sign: f64) {
+    for &(k, m) in entries {
+        let (m, xk) = (m as f64, &mut x[k as usize - lo]);
+        for c in 0..3 {
+            xk[c] += sign * (m * v[c]);
+        }
+    }
 }

@@ -10,10 +10,10 @@
 //!   warm start at `P`. The right-hand side is applied matrix-free as `Lᵀ(L P)`;
 //! - `M` itself is assembled (two-hop sparsity, ~21 entries per row on a 6-connected
 //!   grid, f32 values: [`NormalMatrix`]) and preconditioned by block symmetric
-//!   Gauss–Seidel applied in Eisenstat's form, so one iteration reads every stored
-//!   entry once. On the 256³ synthetic bed this takes the first contraction iteration
-//!   from 175 Jacobi iterations to 71, each about as costly as a matrix-free
-//!   `Lᵀ(L x)`. Tried and not kept: smoothed-aggregation multigrid (20–25 iterations,
+//!   Gauss–Seidel applied in Eisenstat's form, so one iteration reads every entry of
+//!   `M` once. On the 256³ synthetic bed this takes the first contraction iteration
+//!   from 89 Jacobi iterations to 35 (`cg_tol` 1e-4), each about as costly as a
+//!   matrix-free `Lᵀ(L x)`. Tried and not kept: smoothed-aggregation multigrid (20–25 iterations,
 //!   but ~8 products of `M` each) and looser stop tests (a rule for issue 3);
 //! - the stop test is the residual in the preconditioner's norm, `r · B r` (which
 //!   preconditioned CG computes anyway), not `|r|`: the residual itself then need not
@@ -202,9 +202,9 @@ pub fn solve(m: &NormalMatrix, r: Vec<V3>, tol: f64, max_iterations: usize) -> (
     assert_eq!(r.len(), m.rows(), "one residual per row of M");
     // Preconditioned CG with block symmetric Gauss–Seidel `B r = (D + U)⁻¹ D (D + L)⁻¹ r`
     // in Eisenstat's form: the search direction `s` is kept with `ŝ = (D + U) s`, so
-    // `M s = ŝ + (L + E) s` needs no product of its own, and every iteration reads each
-    // stored entry of `M` once (the upper ones in `backward`, the rest in
-    // `forward_product`). The residual is carried only as `y = (D + L)⁻¹ r`, updated as
+    // `M s = ŝ + (L + E) s` needs no product of its own: every iteration reads the stored
+    // in-block upper entries twice (row by row in `backward`, column by column for `L`
+    // in `forward_product`) and the entries in other blocks once. The residual is carried only as `y = (D + L)⁻¹ r`, updated as
     // `y - step (D + L)⁻¹ M s`; `r · B r = y · D y` is both the CG scalar and the stop
     // test, so neither `r` nor `M s` is stored. `r · B r` of the next residual follows
     // from dot products taken in `forward_product`, so the updates of `x` and `y` wait
@@ -216,8 +216,10 @@ pub fn solve(m: &NormalMatrix, r: Vec<V3>, tol: f64, max_iterations: usize) -> (
     let mut iterations = 0;
     while active.iter().any(|&a| a) && iterations < max_iterations {
         iterations += 1;
-        m.backward(&mut k, step, beta);
-        let [pq, rz, wy, ww] = m.forward_product(&mut k);
+        let [sh, su] = m.backward(&mut k, step, beta);
+        let [se, rz, wy, ww] = m.forward_product(&mut k);
+        // `s · M s = s · ŝ + s · L s + s · E s`, with `s · L s = s · U s`.
+        let pq: V3 = std::array::from_fn(|c| sh[c] + su[c] + se[c]);
         step = std::array::from_fn(|c| if active[c] && pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 });
         let rz_new: V3 = std::array::from_fn(|c| rz[c] - 2.0 * step[c] * wy[c] + step[c] * step[c] * ww[c]);
         for c in 0..3 {
@@ -403,25 +405,39 @@ mod tests {
         assert!(fast.iter().zip(&pb.p).any(|(a, b)| (a[0] - b[0]).abs() > 1e-3));
     }
 
+    /// The stored `M`, dense, read column by column as `M e_k` (each product adds one
+    /// non-zero term per row, so the values come out exactly as stored).
+    fn stored(m: &NormalMatrix) -> Vec<Vec<f64>> {
+        let n = m.rows();
+        let mut out = vec![vec![0.0; n]; n];
+        let (mut e, mut col) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
+        for k in 0..n {
+            e[k] = [1.0; 3];
+            m.apply_dot(&e, &mut col);
+            e[k] = [0.0; 3];
+            for j in 0..n {
+                out[j][k] = col[j][0];
+            }
+        }
+        out
+    }
+
     #[test]
     fn assembled_matrix_is_the_normal_matrix_and_exactly_symmetric() {
         for pb in [patch(), block(4, 5, 6)] {
-            let m = NormalMatrix::assemble(&pb.op());
             let n = pb.p.len();
             let want = dense_normal(&pb.g, &pb.ln, &pb.lm, 0.5, 0.5, &pb.w);
-            let mut got = vec![vec![0.0; n]; n];
-            for j in 0..n {
-                let row = m.entries(j);
-                assert!(row.windows(2).all(|w| w[0].0 < w[1].0));
-                for (k, v) in row {
-                    got[j][k as usize] = v;
-                }
-                assert_eq!(m.diag[j], got[j][j]);
-            }
-            for j in 0..n {
-                for k in 0..n {
-                    assert!((got[j][k] - want[j][k]).abs() <= 1e-6 * want[j][j], "M[{j}][{k}]");
-                    assert_eq!(got[j][k].to_bits(), got[k][j].to_bits(), "M[{j}][{k}] vs M[{k}][{j}]");
+            // In blocks of one row every entry is computed and stored by both its rows,
+            // so symmetry is the assembly's, not the storage's.
+            for bs in [1, 7, n] {
+                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
+                let got = stored(&m);
+                for j in 0..n {
+                    assert_eq!(m.diag[j], got[j][j]);
+                    for k in 0..n {
+                        assert!((got[j][k] - want[j][k]).abs() <= 1e-6 * want[j][j], "M[{j}][{k}]");
+                        assert_eq!(got[j][k].to_bits(), got[k][j].to_bits(), "M[{j}][{k}] vs M[{k}][{j}]");
+                    }
                 }
             }
         }
@@ -446,10 +462,9 @@ mod tests {
     #[test]
     fn block_gauss_seidel_is_symmetric_positive_definite() {
         let pb = block(5, 6, 7);
-        let mut m = NormalMatrix::assemble(&pb.op());
         let n = pb.p.len();
         for bs in [n, 50, 17] {
-            m.set_block(bs);
+            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
             for seed in 0..5 {
                 let (u, v) = (noise(n, 2 * seed), noise(n, 2 * seed + 1));
                 let (mut bu, mut bv) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
@@ -502,10 +517,9 @@ mod tests {
     #[test]
     fn eisenstat_form_equals_explicit_preconditioned_cg() {
         let pb = block(6, 7, 8);
-        let mut m = NormalMatrix::assemble(&pb.op());
         let b = pb.rhs();
-        for bs in [m.rows(), 64, 25] {
-            m.set_block(bs);
+        for bs in [b.len(), 64, 25] {
+            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
             let (want, k) = explicit_pcg(&m, &b, 1e-10, 500);
             let (got, stats) = solve(&m, b.clone(), 1e-10, 500);
             assert!(stats.converged);
@@ -523,15 +537,9 @@ mod tests {
     #[test]
     fn solve_matches_a_dense_solve_of_the_assembled_matrix() {
         let pb = block(3, 4, 5);
-        let mut m = NormalMatrix::assemble(&pb.op());
-        m.set_block(13);
+        let m = NormalMatrix::assemble_in_blocks(&pb.op(), 13);
         let n = m.rows();
-        let mut dense_m = vec![vec![0.0; n]; n];
-        for j in 0..n {
-            for (k, v) in m.entries(j) {
-                dense_m[j][k as usize] = v;
-            }
-        }
+        let dense_m = stored(&m);
         let b = pb.rhs();
         let (got, stats) = solve(&m, b.clone(), 1e-13, 1000);
         assert!(stats.converged && stats.iterations < n);
@@ -548,11 +556,7 @@ mod tests {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| match block {
                 None => contract(&pb.op(), &pb.p, 1e-8, 500),
-                Some(bs) => {
-                    let mut m = NormalMatrix::assemble(&pb.op());
-                    m.set_block(bs);
-                    solve(&m, pb.rhs(), 1e-8, 500)
-                }
+                Some(bs) => solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs), pb.rhs(), 1e-8, 500),
             })
         };
         let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), &pb.p, 1e-8, 500);
@@ -712,7 +716,7 @@ mod harness {
                     pool.install(|| op.apply(&x, &mut y, &mut un, &mut um));
                 }
                 let t_mf = t.elapsed().as_secs_f64() / 10.0;
-                eprintln!("nnz/row {:.1}: assemble {t_asm:.3} s, M x {t_apply:.4} s, sgs {t_sgs:.4} s, matrix-free M x {t_mf:.4} s", (0..n).map(|j| m.entries(j).len()).sum::<usize>() as f64 / n as f64);
+                eprintln!("nnz/row {:.1}: assemble {t_asm:.3} s, M x {t_apply:.4} s, sgs {t_sgs:.4} s, matrix-free M x {t_mf:.4} s", m.stored_entries() as f64 / n as f64);
             }
             for _ in 0..2 {
                 let t = Instant::now();
