@@ -10,48 +10,39 @@ use crate::grid::{for_row_blocks, Csr};
 use crate::params::{MedialWeight, Params};
 use rayon::prelude::*;
 
-/// One Laplacian: `(L x)_i = diagonal_i x_i + sum_e weight_e x_{target_e}`.
+/// One Laplacian: `(L x)_i = diagonal_i x_i + sum_e weight_e x_{target_e}`. Its
+/// transpose is read through the graph's twins: `W_ji`, the weight of entry `j → i`, is
+/// `weight[g.twin(j, i)]`.
 #[derive(Debug, Clone, Default)]
 pub struct Laplacian {
     /// `W_ij` per CSR entry `i → j`.
     pub weight: Vec<f32>,
-    /// `W_ji` per CSR entry `i → j` (the transpose, laid out like `weight`).
-    pub weight_t: Vec<f32>,
     /// `-1`, or `0` for a row with no weight.
     pub diagonal: Vec<f32>,
 }
 
 impl Laplacian {
-    /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`. The
-    /// transposed weight of entry `i → j` is row `j`'s weight of `i`, computed from `j`'s
-    /// row total as row `j` computes it, so no map between an entry and its twin is
-    /// needed.
+    /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`.
     fn from_affinity(g: &Csr, affinity: impl Fn(usize, usize) -> f64 + Sync) -> Laplacian {
         let total: Vec<f64> = (0..g.nodes())
             .into_par_iter()
             .map(|i| g.neighbours(i).iter().map(|&j| affinity(i, j as usize)).sum())
             .collect();
-        let weight_of = |i: usize, j: usize| if total[i] > 0.0 { (affinity(i, j) / total[i]) as f32 } else { 0.0 };
-        let per_entry = |w: &(dyn Fn(usize, usize) -> f32 + Sync)| {
-            let mut out = vec![0f32; g.targets.len()];
-            for_row_blocks(&g.offsets, &mut out, |rows, out| {
-                let mut e = 0;
-                for i in rows {
-                    for &j in g.neighbours(i) {
-                        out[e] = w(i, j as usize);
-                        e += 1;
-                    }
+        let mut weight = vec![0f32; g.targets.len()];
+        for_row_blocks(&g.offsets, &mut weight, |rows, out| {
+            let mut e = 0;
+            for i in rows {
+                for &j in g.neighbours(i) {
+                    out[e] = if total[i] > 0.0 { (affinity(i, j as usize) / total[i]) as f32 } else { 0.0 };
+                    e += 1;
                 }
-            });
-            out
-        };
-        let weight = per_entry(&|i, j| weight_of(i, j));
-        let weight_t = per_entry(&|i, j| weight_of(j, i));
+            }
+        });
         let diagonal = (0..g.nodes())
             .into_par_iter()
             .map(|i| if weight[g.offsets[i]..g.offsets[i + 1]].iter().any(|&w| w > 0.0) { -1.0 } else { 0.0 })
             .collect();
-        Laplacian { weight, weight_t, diagonal }
+        Laplacian { weight, diagonal }
     }
 }
 
@@ -145,26 +136,23 @@ mod tests {
         // Row 1: neighbours at distance 1 and 3.
         assert_eq!(&l.weight[1..3], &[0.25, 0.75]);
         assert_eq!(l.weight[0], 1.0);
-        // Transposed entry 1→0 holds W_01 = 1.
-        assert_eq!(l.weight_t[1], 1.0);
+        // The transpose of entry 1 → 0 is W_01 = 1.
+        assert_eq!(l.weight[g.twin(0, 1)], 1.0);
         assert_eq!(l.diagonal, vec![-1.0; 3]);
     }
 
     #[test]
-    fn transposed_weights_are_the_twins_weights() {
-        // A random graph with random geometry: entry i → j of `weight_t` holds the
-        // weight that row j gives i, bit for bit, for every weighting.
+    fn twins_point_back() {
+        // A random graph: the twin of entry i → j is the entry j → i.
         let mut rnd = crate::test_rng(11);
         let n = 500;
         let (g, _) = crate::test_graph(n, (0..4 * n).map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32)));
-        let p: Vec<[f64; 3]> = (0..n).map(|_| [0; 3].map(|_| rnd(1000) as f64 / 7.0)).collect();
-        let r: Vec<f64> = (0..n).map(|_| rnd(50) as f64 / 9.0).collect();
-        for l in [l2_norm(&g, &p), medial(&g, &r, MedialWeight::Radius), medial(&g, &r, MedialWeight::Difference)] {
-            for i in 0..n {
-                for (e, &j) in (g.offsets[i]..).zip(g.neighbours(i)) {
-                    let back = g.offsets[j as usize] + g.neighbours(j as usize).binary_search(&(i as u32)).unwrap();
-                    assert_eq!(l.weight_t[e].to_bits(), l.weight[back].to_bits());
-                }
+        for i in 0..n {
+            for (e, &j) in (g.offsets[i]..).zip(g.neighbours(i)) {
+                let t = g.twin(j as usize, i);
+                assert_eq!(g.targets[t] as usize, i);
+                assert!((g.offsets[j as usize]..g.offsets[j as usize + 1]).contains(&t));
+                assert_eq!(g.twin(i, j as usize), e);
             }
         }
     }

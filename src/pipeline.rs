@@ -80,10 +80,10 @@ pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageCloc
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
         clock.time("solve", || solver::system(&op, &g.positions))
     };
-    let (d, stats) = clock.time("solve", || solver::solve(&m, r, p.cg_tol, p.cg_max_iterations));
+    let start = std::mem::take(&mut g.positions);
+    let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, p.cg_tol, p.cg_max_iterations));
     drop(m);
-    clock.time("solve", || solver::displace(&mut g.positions, &d));
-    drop(d);
+    g.positions = moved;
     let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
     Ok((next, stats))
 }

@@ -118,13 +118,17 @@ fn row(op: &NormalOperator<'_>, j: usize, skip: Range<u32>, acc: &mut Vec<(u32, 
         s => acc[s as usize - 1].1 += v,
     };
     add(j as u32, op.anchor2[j]);
-    // `L_ij` for i = j (the diagonal) and for every neighbour i (entry j → i of the
-    // transposed weights), in increasing i, then row i of `L`. Every term is
+    // `L_ij` for i = j (the diagonal) and for every neighbour i (row i's entry for j,
+    // the twin of entry j → i), in increasing i, then row i of `L`. Every term is
     // `a² (L_ij L_ik)` (a product of two f32 values, exact in f64), so `M_jk` and
     // `M_kj` sum the same terms in the same order: the stored `M` is exactly symmetric.
     let nb = &g.targets[g.offsets[j]..g.offsets[j + 1]];
     let split = nb.partition_point(|&i| (i as usize) < j);
-    let entry = |e: usize| (g.targets[e] as usize, ln.weight_t[e], lm.weight_t[e]);
+    let entry = |e: usize| {
+        let i = g.targets[e] as usize;
+        let t = g.twin(i, j);
+        (i, ln.weight[t], lm.weight[t])
+    };
     let below = (g.offsets[j]..g.offsets[j] + split).map(entry);
     let above = (g.offsets[j] + split..g.offsets[j + 1]).map(entry);
     for (i, cn, cm) in below.chain(std::iter::once((j, ln.diagonal[j], lm.diagonal[j]))).chain(above) {
@@ -391,14 +395,14 @@ pub struct Krylov {
 }
 
 impl Krylov {
-    /// The state at `x = 0` for the right-hand side `r`: `y = (D + L)⁻¹ r` (in `r`'s
+    /// The state at the start `x` whose residual is `r`: `y = (D + L)⁻¹ r` (in `r`'s
     /// place, so the two never both exist), the rest zero.
-    pub fn start(m: &NormalMatrix, r: Vec<V3>) -> Krylov {
+    pub fn start(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>) -> Krylov {
         let n = r.len();
         let mut y = r;
         m.forward(&mut y);
         let zero = || filled(n, [0.0; 3]);
-        Krylov { x: zero(), y, hat: zero(), s: zero(), w: zero() }
+        Krylov { x, y, hat: zero(), s: zero(), w: zero() }
     }
 }
 

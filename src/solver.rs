@@ -24,7 +24,7 @@
 //! - every reduction is summed over fixed chunks (or the fixed Gauss–Seidel blocks) in
 //!   a fixed order, so the result does not depend on the thread count.
 
-use crate::grid::{for_row_blocks, Csr};
+use crate::grid::Csr;
 use crate::laplacian::Laplacian;
 use crate::params::Params;
 use crate::precondition::{Krylov, NormalMatrix};
@@ -71,6 +71,22 @@ fn apply_row(g: &Csr, w: &[f32], diag: &[f32], x: &[V3], i: usize) -> V3 {
     y
 }
 
+/// `(Lnᵀ un)_j` and `(Lmᵀ um)_j`, reading `W_ij` at the twin of entry `j → i`.
+fn transposed_row(g: &Csr, ln: &Laplacian, lm: &Laplacian, un: &[V3], um: &[V3], j: usize) -> (V3, V3) {
+    let (dn, dm) = (ln.diagonal[j] as f64, lm.diagonal[j] as f64);
+    let mut a = un[j].map(|v| dn * v);
+    let mut b = um[j].map(|v| dm * v);
+    for &i in g.neighbours(j) {
+        let (i, t) = (i as usize, g.twin(i as usize, j));
+        let (wn, wm) = (ln.weight[t] as f64, lm.weight[t] as f64);
+        for c in 0..3 {
+            a[c] += wn * un[i][c];
+            b[c] += wm * um[i][c];
+        }
+    }
+    (a, b)
+}
+
 impl NormalOperator<'_> {
     /// `L x` for both Laplacians.
     fn forward(&self, x: &[V3], un: &mut [V3], um: &mut [V3]) {
@@ -87,8 +103,7 @@ impl NormalOperator<'_> {
         let g = self.graph;
         let (un, um) = (&*un, &*um);
         y.par_iter_mut().enumerate().with_min_len(1024).for_each(|(j, yj)| {
-            let a = apply_row(g, &self.ln.weight_t, &self.ln.diagonal, un, j);
-            let b = apply_row(g, &self.lm.weight_t, &self.lm.diagonal, um, j);
+            let (a, b) = transposed_row(g, self.ln, self.lm, un, um, j);
             let w2 = self.anchor2[j];
             for c in 0..3 {
                 yj[c] = self.a2 * a[c] + self.b2 * b[c] + w2 * x[j][c];
@@ -100,25 +115,20 @@ impl NormalOperator<'_> {
     pub fn diagonal(&self) -> Vec<f64> {
         let g = self.graph;
         let mut sq = vec![0f64; g.nodes()];
-        // diag(LᵀL)_j = sum_i L_ij² = L_jj² + sum over j's row of (W_ij)², read from
-        // the transposed weights laid out in j's row.
-        let mut col = vec![0f64; g.targets.len()];
-        for_row_blocks(&g.offsets, &mut col, |rows, out| {
-            let mut e = 0;
-            for j in rows {
-                for k in g.offsets[j]..g.offsets[j + 1] {
-                    let (wn, wm) = (self.ln.weight_t[k] as f64, self.lm.weight_t[k] as f64);
-                    out[e] = self.a2 * wn * wn + self.b2 * wm * wm;
-                    e += 1;
-                }
-            }
-        });
+        // diag(LᵀL)_j = sum_i L_ij² = L_jj² + sum over j's neighbours i of W_ij², read at
+        // the twins of j's entries.
         sq.par_iter_mut().enumerate().for_each(|(j, s)| {
             let (dn, dm) = (self.ln.diagonal[j] as f64, self.lm.diagonal[j] as f64);
-            *s = col[g.offsets[j]..g.offsets[j + 1]].iter().sum::<f64>()
-                + self.a2 * dn * dn
-                + self.b2 * dm * dm
-                + self.anchor2[j];
+            let col: f64 = g
+                .neighbours(j)
+                .iter()
+                .map(|&i| {
+                    let t = g.twin(i as usize, j);
+                    let (wn, wm) = (self.ln.weight[t] as f64, self.lm.weight[t] as f64);
+                    self.a2 * wn * wn + self.b2 * wm * wm
+                })
+                .sum();
+            *s = col + self.a2 * dn * dn + self.b2 * dm * dm + self.anchor2[j];
         });
         sq
     }
@@ -178,28 +188,22 @@ fn rhs(op: &NormalOperator<'_>, positions: &[V3]) -> Vec<V3> {
     r
 }
 
-/// `positions += d`.
-pub fn displace(positions: &mut [V3], d: &[V3]) {
-    positions.par_iter_mut().zip(d.par_iter()).for_each(|(p, d)| *p = [p[0] + d[0], p[1] + d[1], p[2] + d[2]]);
-}
-
 /// New positions `P'` of eq. 8: `P + D` with `M D = -(alpha² LnᵀLn + beta² LmᵀLm) P`,
 /// solved to `|r| <= tol |r_0|` per coordinate, at most `max_iterations` iterations,
 /// by conjugate gradients on the assembled `M` preconditioned by block symmetric
-/// Gauss–Seidel ([`NormalMatrix::sgs_dot`]): [`system`], [`solve`], [`displace`].
+/// Gauss–Seidel ([`NormalMatrix::sgs_dot`]): [`system`], then [`solve`].
 pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
     let (m, r) = system(op, positions);
-    let (d, stats) = solve(&m, r, tol, max_iterations);
-    let mut out = positions.to_vec();
-    displace(&mut out, &d);
-    (out, stats)
+    solve(&m, positions.to_vec(), r, tol, max_iterations)
 }
 
-/// `D` with `M D = r`, from `D = 0`, to `|r_k|_B <= tol |r|_B` per coordinate (the
+/// `x + D` with `M D = r`, for a start `x` whose residual is `r` (so the result solves
+/// `M x' = M x + r`): `D` from 0 to `|r_k|_B <= tol |r|_B` per coordinate (the
 /// residual in the preconditioner's norm, `|r|_B² = r · B r`), at most
-/// `max_iterations` iterations.
-pub fn solve(m: &NormalMatrix, r: Vec<V3>, tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
-    assert_eq!(r.len(), m.rows(), "one residual per row of M");
+/// `max_iterations` iterations. `D` is added to `x` step by step, so the contraction
+/// passes its positions and no displacement vector is stored.
+pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
+    assert!(r.len() == m.rows() && x.len() == m.rows(), "one start and one residual per row of M");
     // Preconditioned CG with block symmetric Gauss–Seidel `B r = (D + U)⁻¹ D (D + L)⁻¹ r`
     // in Eisenstat's form: the search direction `s` is kept with `ŝ = (D + U) s`, so
     // `M s = ŝ + (L + E) s` needs no product of its own: every iteration reads the stored
@@ -209,7 +213,7 @@ pub fn solve(m: &NormalMatrix, r: Vec<V3>, tol: f64, max_iterations: usize) -> (
     // test, so neither `r` nor `M s` is stored. `r · B r` of the next residual follows
     // from dot products taken in `forward_product`, so the updates of `x` and `y` wait
     // for the next `backward` pass instead of a pass of their own.
-    let mut k = Krylov::start(m, r);
+    let mut k = Krylov::start(m, x, r);
     let rz0 = weighted_norms(&m.diag, &k.y);
     let mut active = rz0.map(|x| x > 0.0);
     let (mut step, mut beta) = ([0.0; 3], [0.0; 3]);
@@ -521,7 +525,7 @@ mod tests {
         for bs in [b.len(), 64, 25] {
             let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
             let (want, k) = explicit_pcg(&m, &b, 1e-10, 500);
-            let (got, stats) = solve(&m, b.clone(), 1e-10, 500);
+            let (got, stats) = solve(&m, vec![[0.0; 3]; b.len()], b.clone(), 1e-10, 500);
             assert!(stats.converged);
             assert_eq!(stats.iterations, k, "block {bs}");
             assert!(max_diff(&got, &want) < 1e-9, "block {bs}");
@@ -541,7 +545,7 @@ mod tests {
         let n = m.rows();
         let dense_m = stored(&m);
         let b = pb.rhs();
-        let (got, stats) = solve(&m, b.clone(), 1e-13, 1000);
+        let (got, stats) = solve(&m, vec![[0.0; 3]; n], b.clone(), 1e-13, 1000);
         assert!(stats.converged && stats.iterations < n);
         assert!(max_diff(&got, &gauss(&dense_m, &b)) < 1e-8);
         // Fewer iterations than Jacobi-preconditioned CG on the same system.
@@ -556,7 +560,7 @@ mod tests {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| match block {
                 None => contract(&pb.op(), &pb.p, 1e-8, 500),
-                Some(bs) => solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs), pb.rhs(), 1e-8, 500),
+                Some(bs) => solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs), pb.p.clone(), pb.rhs(), 1e-8, 500),
             })
         };
         let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), &pb.p, 1e-8, 500);
