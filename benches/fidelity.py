@@ -673,6 +673,7 @@ SWEEP: tuple[tuple[str, dict[str, Any]], ...] = (
     ("radius_correction=1.0", {"radius_correction": 1.0}),
     ("cg_tol=1e-6 (METHOD.md)", {"cg_tol": 1e-6}),
     ("cg_tol=1e-3", {"cg_tol": 1e-3}),
+    ("cg_tol=1e-2", {"cg_tol": 1e-2}),
     ("stall_ratio=0 (METHOD.md)", {"stall_ratio": 0.0}),
     ("stall_ratio=0.005", {"stall_ratio": 0.005}),
     ("stall_ratio=0.02", {"stall_ratio": 0.02}),
