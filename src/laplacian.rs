@@ -24,16 +24,14 @@ pub struct Laplacian {
 impl Laplacian {
     /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`.
     fn from_affinity(g: &Csr, affinity: impl Fn(usize, usize) -> f64 + Sync) -> Laplacian {
-        let total: Vec<f64> = (0..g.nodes())
-            .into_par_iter()
-            .map(|i| g.neighbours(i).iter().map(|&j| affinity(i, j as usize)).sum())
-            .collect();
         let mut weight = vec![0f32; g.targets.len()];
         for_row_blocks(&g.offsets, &mut weight, |rows, out| {
             let mut e = 0;
             for i in rows {
-                for &j in g.neighbours(i) {
-                    out[e] = if total[i] > 0.0 { (affinity(i, j as usize) / total[i]) as f32 } else { 0.0 };
+                let nb = g.neighbours(i);
+                let total: f64 = nb.iter().map(|&j| affinity(i, j as usize)).sum();
+                for &j in nb {
+                    out[e] = if total > 0.0 { (affinity(i, j as usize) / total) as f32 } else { 0.0 };
                     e += 1;
                 }
             }

@@ -13,8 +13,9 @@
 //!   Gauss–Seidel applied in Eisenstat's form, so one iteration reads every entry of
 //!   `M` once. On the 256³ synthetic bed this takes the first contraction iteration
 //!   from 89 Jacobi iterations to 35 (`cg_tol` 1e-4), each about as costly as a
-//!   matrix-free `Lᵀ(L x)`. Tried and not kept: smoothed-aggregation multigrid (20–25 iterations,
-//!   but ~8 products of `M` each) and looser stop tests (a rule for issue 3);
+//!   matrix-free `Lᵀ(L x)`. Tried and not kept: smoothed-aggregation multigrid
+//!   (20–25 iterations, but ~8 products of `M` each) and looser stop tests (a rule
+//!   for issue 3);
 //! - the stop test is the residual in the preconditioner's norm, `r · B r` (which
 //!   preconditioned CG computes anyway), not `|r|`: the residual itself then need not
 //!   be stored or updated, which saves two vectors (48 B per node) and a sixth of each
@@ -208,9 +209,10 @@ pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations:
     // in Eisenstat's form: the search direction `s` is kept with `ŝ = (D + U) s`, so
     // `M s = ŝ + (L + E) s` needs no product of its own: every iteration reads the stored
     // in-block upper entries twice (row by row in `backward`, column by column for `L`
-    // in `forward_product`) and the entries in other blocks once. The residual is carried only as `y = (D + L)⁻¹ r`, updated as
-    // `y - step (D + L)⁻¹ M s`; `r · B r = y · D y` is both the CG scalar and the stop
-    // test, so neither `r` nor `M s` is stored. `r · B r` of the next residual follows
+    // in `forward_product`) and the entries in other blocks once. The residual is
+    // carried only as `y = (D + L)⁻¹ r`, updated as `y - step (D + L)⁻¹ M s`;
+    // `r · B r = y · D y` is both the CG scalar and the stop test, so neither `r` nor
+    // `M s` is stored. `r · B r` of the next residual follows
     // from dot products taken in `forward_product`, so the updates of `x` and `y` wait
     // for the next `backward` pass instead of a pass of their own.
     let mut k = Krylov::start(m, x, r);
