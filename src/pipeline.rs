@@ -9,6 +9,7 @@ use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid;
 use crate::laplacian;
 use crate::params::{AreaReference, Params, STALL_AREA};
+use crate::precondition::NormalMatrix;
 use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared, Voxel};
 use ndarray::ArrayView3;
@@ -71,16 +72,17 @@ fn report(
 /// of each part added to `clock`. Runs on the current rayon pool.
 pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageClock) -> Result<(NodeGraph, SolveStats)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
-    // The Laplacians are dropped once the system is assembled, before the
-    // conjugate-gradient vectors are allocated.
-    let (m, r) = {
+    // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
+    // `M` itself, and the conjugate-gradient vectors are allocated after.
+    let m = {
         let (ln, lm) = clock.time("laplacian", || {
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
-        clock.time("solve", || solver::system(&op, &g.positions))
+        clock.time("solve", || NormalMatrix::assemble(&op))
     };
     return_free_memory();
+    let r = clock.time("solve", || m.displacement_rhs(&g.positions));
     let start = std::mem::take(&mut g.positions);
     let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, p.cg_tol, p.cg_max_iterations));
     drop(m);

@@ -42,17 +42,19 @@ const MAX_BLOCKS: usize = 16;
 /// sweep streams one array front to back, skipping nothing. Values are `f32`, like the
 /// Laplacian weights they are built from; arithmetic is `f64`.
 ///
-/// The rows are kept in stripes of [`ROW_BLOCK`] rows, each built by one parallel task
-/// and never copied: no serial concatenation, and the pages of each stripe are first
-/// touched by the thread that builds it.
+/// The rows are kept in stripes of up to [`ROW_BLOCK`] rows, each built by one parallel
+/// task and never copied: no serial concatenation, and the pages of each stripe are
+/// first touched by the thread that builds it. A stripe has few enough rows that its
+/// entry offsets fit in `u32` (see [`stripe_shift`]).
 #[derive(Debug, Clone, Default)]
 pub struct NormalMatrix {
     /// The diagonal `D_j = M_jj` (as stored), positive.
     pub diag: Vec<f64>,
     /// Rows per Gauss–Seidel block (the last block may be shorter).
     block: usize,
-    /// Rows `s * ROW_BLOCK..` in stripe `s`.
+    /// Rows `s << shift..` in stripe `s`.
     stripes: Vec<Stripe>,
+    shift: u32,
 }
 
 /// Consecutive rows of `M` without their diagonal and in-block lower entries.
@@ -60,10 +62,10 @@ pub struct NormalMatrix {
 struct Stripe {
     /// Row `t`'s entries in other blocks: `outer[outer_at[t]..outer_at[t + 1]]`.
     outer: Vec<(u32, f32)>,
-    outer_at: Vec<usize>,
+    outer_at: Vec<u32>,
     /// Row `t`'s in-block upper entries: `upper[upper_at[t]..upper_at[t + 1]]`.
     upper: Vec<(u32, f32)>,
-    upper_at: Vec<usize>,
+    upper_at: Vec<u32>,
 }
 
 impl Stripe {
@@ -83,9 +85,22 @@ impl Stripe {
                 self.upper.push((k, v));
             }
         }
-        self.outer_at.push(self.outer.len());
-        self.upper_at.push(self.upper.len());
+        // In range: see `stripe_shift`.
+        self.outer_at.push(self.outer.len() as u32);
+        self.upper_at.push(self.upper.len() as u32);
     }
+}
+
+/// Rows per stripe of `M` as a power of two `1 << shift`: [`ROW_BLOCK`], or fewer if
+/// a stripe's entry count could then pass `u32::MAX`. A row of `M` has at most
+/// `min(n, (d + 1)²)` entries for the largest degree `d` of `graph` (its columns are
+/// its nodes within two hops), so this bounds every stripe's offsets.
+fn stripe_shift(graph: &Csr) -> u32 {
+    let n = graph.nodes() as u64;
+    let degree = (0..graph.nodes()).map(|i| graph.neighbours(i).len()).max().unwrap_or(0) as u64;
+    let row = n.min((degree + 1) * (degree + 1)).max(1);
+    let rows = (u32::MAX as u64 / row).clamp(1, ROW_BLOCK as u64);
+    rows.ilog2()
 }
 
 /// `acc + sum_k m_jk x_k` over the given entries of a row.
@@ -163,15 +178,16 @@ impl NormalMatrix {
         // contents are then copied to vectors of exactly their length (a stripe grown
         // in place would keep up to twice its size).
         let scratch = PerThread::new(|| (filled(n, 0u32), Vec::with_capacity(64), Stripe::new()));
-        let mut diag = filled(n, 0.0);
+        let mut diag = filled(n, 0.0f64);
+        let shift = stripe_shift(op.graph);
         let stripes = diag
-            .par_chunks_mut(ROW_BLOCK)
+            .par_chunks_mut(1 << shift)
             .enumerate()
             .map(|(b, diag)| {
                 scratch.with(|(slot, acc, stripe)| {
                     *stripe = Stripe::new();
                     for (t, d) in diag.iter_mut().enumerate() {
-                        let j = b * ROW_BLOCK + t;
+                        let j = (b << shift) + t;
                         // The in-block lower entries are not stored (the rows before
                         // hold them), so they are not computed either.
                         row(op, j, (j / block * block) as u32..j as u32, acc, slot);
@@ -187,7 +203,7 @@ impl NormalMatrix {
                 })
             })
             .collect();
-        NormalMatrix { diag, block, stripes }
+        NormalMatrix { diag, block, stripes, shift }
     }
 
     /// Number of rows.
@@ -204,15 +220,15 @@ impl NormalMatrix {
     /// Row `j`'s entries in other Gauss–Seidel blocks.
     #[inline]
     fn outer_entries(&self, j: usize) -> &[(u32, f32)] {
-        let (s, t) = (&self.stripes[j / ROW_BLOCK], j % ROW_BLOCK);
-        &s.outer[s.outer_at[t]..s.outer_at[t + 1]]
+        let (s, t) = (&self.stripes[j >> self.shift], j & ((1 << self.shift) - 1));
+        &s.outer[s.outer_at[t] as usize..s.outer_at[t + 1] as usize]
     }
 
     /// Row `j`'s in-block upper entries.
     #[inline]
     fn upper_entries(&self, j: usize) -> &[(u32, f32)] {
-        let (s, t) = (&self.stripes[j / ROW_BLOCK], j % ROW_BLOCK);
-        &s.upper[s.upper_at[t]..s.upper_at[t + 1]]
+        let (s, t) = (&self.stripes[j >> self.shift], j & ((1 << self.shift) - 1));
+        &s.upper[s.upper_at[t] as usize..s.upper_at[t + 1] as usize]
     }
 
     /// `y = M x`, returning the per-coordinate dot products `x · y` (summed per block in
@@ -243,6 +259,40 @@ impl NormalMatrix {
             })
             .collect();
         parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
+    }
+
+    /// The right-hand side of the displacement system at the positions `p`,
+    /// `r = Wg² p - M p`. The rows of `M - Wg² = alpha² LnᵀLn + beta² LmᵀLm` sum to zero
+    /// (those of the Laplacians do), so `r_j = sum_(k != j) M_jk (p_j - p_k)`: from the
+    /// stored off-diagonal entries alone, translation-invariant (differences of
+    /// positions at most two hops apart, never absolute coordinates), and without the
+    /// Laplacians, which the caller can free first. Thread-independent, like
+    /// [`NormalMatrix::apply_dot`].
+    pub fn displacement_rhs(&self, p: &[V3]) -> Vec<V3> {
+        let bs = self.block;
+        let mut r = filled(self.rows(), [0.0; 3]);
+        r.par_chunks_mut(bs).enumerate().for_each(|(b, rs)| {
+            let lo = b * bs;
+            for j in lo..lo + rs.len() {
+                let pj = p[j];
+                // Row `j`'s in-block lower part has arrived from the rows before it.
+                let mut acc = rs[j - lo];
+                for &(k, m) in self.upper_entries(j).iter().chain(self.outer_entries(j)) {
+                    let (m, pk) = (m as f64, &p[k as usize]);
+                    for c in 0..3 {
+                        acc[c] += m * (pj[c] - pk[c]);
+                    }
+                }
+                rs[j - lo] = acc;
+                for &(k, m) in self.upper_entries(j) {
+                    let (m, k) = (m as f64, k as usize);
+                    for c in 0..3 {
+                        rs[k - lo][c] += m * (p[k][c] - pj[c]);
+                    }
+                }
+            }
+        });
+        r
     }
 
     /// Block symmetric Gauss–Seidel: `z = (D + U)⁻¹ D (D + L)⁻¹ r` with `L`, `D`,
@@ -427,5 +477,24 @@ fn scatter(entries: &[(u32, f32)], x: &mut [V3], lo: usize, v: V3, sign: f64) {
         for c in 0..3 {
             xk[c] += sign * (m * v[c]);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stripes_are_short_enough_for_u32_offsets() {
+        // A path: rows of at most 5 entries, stripes of the full size.
+        let path: Vec<(u32, u32)> = (0..99).map(|i| (i, i + 1)).collect();
+        assert_eq!(1 << stripe_shift(&Csr::from_sorted_edges(100, &path)), ROW_BLOCK);
+        // A star of 2²¹ leaves: a row of `M` may span every node, so a stripe holds
+        // as many rows as keep its entries countable in u32, and no more.
+        let n = (1 << 21) + 1;
+        let star: Vec<(u32, u32)> = (1..n as u32).map(|i| (0, i)).collect();
+        let shift = stripe_shift(&Csr::from_sorted_edges(n, &star));
+        assert!((1u64 << shift) * n as u64 <= u32::MAX as u64);
+        assert!((2u64 << shift) * n as u64 > u32::MAX as u64);
     }
 }

@@ -7,7 +7,9 @@
 //! - the unknown is the displacement `D = P' - P`, so the right-hand side
 //!   `-(alpha² LnᵀLn + beta² LmᵀLm) P` is translation-invariant and the relative
 //!   tolerance means the same wherever the volume sits; starting from `D = 0` is the
-//!   warm start at `P`. The right-hand side is applied matrix-free as `Lᵀ(L P)`;
+//!   warm start at `P`. The right-hand side is read off the assembled `M`
+//!   ([`NormalMatrix::displacement_rhs`]), so the Laplacians are freed before the
+//!   conjugate-gradient vectors are allocated;
 //! - `M` itself is assembled (two-hop sparsity, ~21 entries per row on a 6-connected
 //!   grid, f32 values: [`NormalMatrix`]) and preconditioned by block symmetric
 //!   Gauss–Seidel applied in Eisenstat's form, so one iteration reads every entry of
@@ -57,84 +59,6 @@ impl<'a> NormalOperator<'a> {
     }
 }
 
-/// `(L x)_i` for one node.
-fn apply_row(g: &Csr, w: &[f32], diag: &[f32], x: &[V3], i: usize) -> V3 {
-    let d = diag[i] as f64;
-    let mut y = [d * x[i][0], d * x[i][1], d * x[i][2]];
-    let (lo, hi) = (g.offsets[i], g.offsets[i + 1]);
-    for (e, &j) in (lo..hi).zip(&g.targets[lo..hi]) {
-        let wij = w[e] as f64;
-        let xj = &x[j as usize];
-        y[0] += wij * xj[0];
-        y[1] += wij * xj[1];
-        y[2] += wij * xj[2];
-    }
-    y
-}
-
-/// `(Lnᵀ un)_j` and `(Lmᵀ um)_j`, reading `W_ij` at the twin of entry `j → i`.
-fn transposed_row(g: &Csr, ln: &Laplacian, lm: &Laplacian, un: &[V3], um: &[V3], j: usize) -> (V3, V3) {
-    let (dn, dm) = (ln.diagonal[j] as f64, lm.diagonal[j] as f64);
-    let mut a = un[j].map(|v| dn * v);
-    let mut b = um[j].map(|v| dm * v);
-    for &i in g.neighbours(j) {
-        let (i, t) = (i as usize, g.twin(i as usize, j));
-        let (wn, wm) = (ln.weight[t] as f64, lm.weight[t] as f64);
-        for c in 0..3 {
-            a[c] += wn * un[i][c];
-            b[c] += wm * um[i][c];
-        }
-    }
-    (a, b)
-}
-
-impl NormalOperator<'_> {
-    /// `L x` for both Laplacians.
-    fn forward(&self, x: &[V3], un: &mut [V3], um: &mut [V3]) {
-        let g = self.graph;
-        un.par_iter_mut().zip(um.par_iter_mut()).enumerate().with_min_len(1024).for_each(|(i, (a, b))| {
-            *a = apply_row(g, &self.ln.weight, &self.ln.diagonal, x, i);
-            *b = apply_row(g, &self.lm.weight, &self.lm.diagonal, x, i);
-        });
-    }
-
-    /// `y = M x`, using `un`, `um` as scratch.
-    pub fn apply(&self, x: &[V3], y: &mut [V3], un: &mut [V3], um: &mut [V3]) {
-        self.forward(x, un, um);
-        let g = self.graph;
-        let (un, um) = (&*un, &*um);
-        y.par_iter_mut().enumerate().with_min_len(1024).for_each(|(j, yj)| {
-            let (a, b) = transposed_row(g, self.ln, self.lm, un, um, j);
-            let w2 = self.anchor2[j];
-            for c in 0..3 {
-                yj[c] = self.a2 * a[c] + self.b2 * b[c] + w2 * x[j][c];
-            }
-        });
-    }
-
-    /// The diagonal of `M` (the Jacobi preconditioner).
-    pub fn diagonal(&self) -> Vec<f64> {
-        let g = self.graph;
-        let mut sq = vec![0f64; g.nodes()];
-        // diag(LᵀL)_j = sum_i L_ij² = L_jj² + sum over j's neighbours i of W_ij², read at
-        // the twins of j's entries.
-        sq.par_iter_mut().enumerate().for_each(|(j, s)| {
-            let (dn, dm) = (self.ln.diagonal[j] as f64, self.lm.diagonal[j] as f64);
-            let col: f64 = g
-                .neighbours(j)
-                .iter()
-                .map(|&i| {
-                    let t = g.twin(i as usize, j);
-                    let (wn, wm) = (self.ln.weight[t] as f64, self.lm.weight[t] as f64);
-                    self.a2 * wn * wn + self.b2 * wm * wm
-                })
-                .sum();
-            *s = col + self.a2 * dn * dn + self.b2 * dm * dm + self.anchor2[j];
-        });
-        sq
-    }
-}
-
 /// Per-coordinate `sum_i w_i y_i[c]²`, reduced over fixed chunks.
 fn weighted_norms(w: &[f64], y: &[V3]) -> V3 {
     let parts: Vec<V3> = w
@@ -162,39 +86,13 @@ pub struct SolveStats {
     pub converged: bool,
 }
 
-/// The system of eq. 8 for the displacement `D = P' - P`: the assembled `M` and the
-/// right-hand side `-(alpha² LnᵀLn + beta² LmᵀLm) P`. Once they are built the
-/// Laplacians are no longer needed, so a caller can free them before [`solve`].
-pub fn system(op: &NormalOperator<'_>, positions: &[V3]) -> (NormalMatrix, Vec<V3>) {
-    let r = rhs(op, positions);
-    (NormalMatrix::assemble(op), r)
-}
-
-/// The right-hand side for the displacement, `r0 = b - M·0 = -(a² LnᵀLn + b² LmᵀLm) P
-/// = -(M P - Wg² P)`, matrix-free: the Laplacians' rows sum to zero, so this is
-/// translation-invariant.
-fn rhs(op: &NormalOperator<'_>, positions: &[V3]) -> Vec<V3> {
-    let n = positions.len();
-    let mut r = vec![[0.0; 3]; n];
-    {
-        let mut un = vec![[0.0; 3]; n];
-        let mut um = vec![[0.0; 3]; n];
-        op.apply(positions, &mut r, &mut un, &mut um);
-    }
-    r.par_iter_mut().zip(positions.par_iter()).zip(op.anchor2.par_iter()).for_each(|((ri, p), w2)| {
-        for c in 0..3 {
-            ri[c] = -(ri[c] - w2 * p[c]);
-        }
-    });
-    r
-}
-
 /// New positions `P'` of eq. 8: `P + D` with `M D = -(alpha² LnᵀLn + beta² LmᵀLm) P`,
 /// solved to `|r| <= tol |r_0|` per coordinate, at most `max_iterations` iterations,
 /// by conjugate gradients on the assembled `M` preconditioned by block symmetric
-/// Gauss–Seidel ([`NormalMatrix::sgs_dot`]): [`system`], then [`solve`].
+/// Gauss–Seidel ([`NormalMatrix::sgs_dot`]).
 pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
-    let (m, r) = system(op, positions);
+    let m = NormalMatrix::assemble(op);
+    let r = m.displacement_rhs(positions);
     solve(&m, positions.to_vec(), r, tol, max_iterations)
 }
 
@@ -340,7 +238,7 @@ mod tests {
 
         /// The right-hand side `-(M - Wg²) P` of the displacement system.
         fn rhs(&self) -> Vec<V3> {
-            super::rhs(&self.op(), &self.p)
+            super::reference::rhs(&self.op(), &self.p)
         }
     }
 
@@ -445,6 +343,26 @@ mod tests {
                         assert_eq!(got[j][k].to_bits(), got[k][j].to_bits(), "M[{j}][{k}] vs M[{k}][{j}]");
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn right_hand_side_from_the_matrix_is_translation_invariant() {
+        for pb in [patch(), block(4, 5, 6)] {
+            let n = pb.p.len();
+            // The matrix-free `-(a² LnᵀLn + b² LmᵀLm) P`, in f64 from the Laplacians.
+            let want = pb.rhs();
+            let scale = want.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
+            assert!(scale > 1e-3);
+            let far: Vec<V3> = pb.p.iter().map(|q| q.map(|v| v + 1e4)).collect();
+            for bs in [1, 7, n] {
+                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
+                let got = m.displacement_rhs(&pb.p);
+                // `M` is stored in f32: its relative rounding, ~1e-7.
+                assert!(max_diff(&got, &want) <= 1e-6 * scale, "block {bs}");
+                // Positions 1e4 away give the same right-hand side to f64 rounding.
+                assert!(max_diff(&m.displacement_rhs(&far), &got) <= 1e-9 * scale, "block {bs}");
             }
         }
     }
@@ -580,10 +498,108 @@ mod tests {
     }
 }
 
+/// The matrix-free operator and the first solver, kept as references for tests.
 #[cfg(test)]
 mod reference {
     use super::tests::dot;
     use super::*;
+
+    /// `(L x)_i` for one node.
+    fn apply_row(g: &Csr, w: &[f32], diag: &[f32], x: &[V3], i: usize) -> V3 {
+        let d = diag[i] as f64;
+        let mut y = [d * x[i][0], d * x[i][1], d * x[i][2]];
+        let (lo, hi) = (g.offsets[i], g.offsets[i + 1]);
+        for (e, &j) in (lo..hi).zip(&g.targets[lo..hi]) {
+            let wij = w[e] as f64;
+            let xj = &x[j as usize];
+            y[0] += wij * xj[0];
+            y[1] += wij * xj[1];
+            y[2] += wij * xj[2];
+        }
+        y
+    }
+
+    /// `(Lnᵀ un)_j` and `(Lmᵀ um)_j`, reading `W_ij` at the twin of entry `j → i`.
+    fn transposed_row(g: &Csr, ln: &Laplacian, lm: &Laplacian, un: &[V3], um: &[V3], j: usize) -> (V3, V3) {
+        let (dn, dm) = (ln.diagonal[j] as f64, lm.diagonal[j] as f64);
+        let mut a = un[j].map(|v| dn * v);
+        let mut b = um[j].map(|v| dm * v);
+        for &i in g.neighbours(j) {
+            let (i, t) = (i as usize, g.twin(i as usize, j));
+            let (wn, wm) = (ln.weight[t] as f64, lm.weight[t] as f64);
+            for c in 0..3 {
+                a[c] += wn * un[i][c];
+                b[c] += wm * um[i][c];
+            }
+        }
+        (a, b)
+    }
+
+    impl NormalOperator<'_> {
+        /// `L x` for both Laplacians.
+        fn forward(&self, x: &[V3], un: &mut [V3], um: &mut [V3]) {
+            let g = self.graph;
+            un.par_iter_mut().zip(um.par_iter_mut()).enumerate().with_min_len(1024).for_each(|(i, (a, b))| {
+                *a = apply_row(g, &self.ln.weight, &self.ln.diagonal, x, i);
+                *b = apply_row(g, &self.lm.weight, &self.lm.diagonal, x, i);
+            });
+        }
+
+        /// `y = M x`, using `un`, `um` as scratch.
+        pub fn apply(&self, x: &[V3], y: &mut [V3], un: &mut [V3], um: &mut [V3]) {
+            self.forward(x, un, um);
+            let g = self.graph;
+            let (un, um) = (&*un, &*um);
+            y.par_iter_mut().enumerate().with_min_len(1024).for_each(|(j, yj)| {
+                let (a, b) = transposed_row(g, self.ln, self.lm, un, um, j);
+                let w2 = self.anchor2[j];
+                for c in 0..3 {
+                    yj[c] = self.a2 * a[c] + self.b2 * b[c] + w2 * x[j][c];
+                }
+            });
+        }
+
+        /// The diagonal of `M` (the Jacobi preconditioner).
+        pub fn diagonal(&self) -> Vec<f64> {
+            let g = self.graph;
+            let mut sq = vec![0f64; g.nodes()];
+            // diag(LᵀL)_j = sum_i L_ij² = L_jj² + sum over j's neighbours i of W_ij², read at
+            // the twins of j's entries.
+            sq.par_iter_mut().enumerate().for_each(|(j, s)| {
+                let (dn, dm) = (self.ln.diagonal[j] as f64, self.lm.diagonal[j] as f64);
+                let col: f64 = g
+                    .neighbours(j)
+                    .iter()
+                    .map(|&i| {
+                        let t = g.twin(i as usize, j);
+                        let (wn, wm) = (self.ln.weight[t] as f64, self.lm.weight[t] as f64);
+                        self.a2 * wn * wn + self.b2 * wm * wm
+                    })
+                    .sum();
+                *s = col + self.a2 * dn * dn + self.b2 * dm * dm + self.anchor2[j];
+            });
+            sq
+        }
+    }
+
+    /// The right-hand side for the displacement, `r0 = b - M·0 = -(a² LnᵀLn + b² LmᵀLm) P
+    /// = -(M P - Wg² P)`, matrix-free: the Laplacians' rows sum to zero, so this is
+    /// translation-invariant.
+    pub(super) fn rhs(op: &NormalOperator<'_>, positions: &[V3]) -> Vec<V3> {
+        let n = positions.len();
+        let mut r = vec![[0.0; 3]; n];
+        {
+            let mut un = vec![[0.0; 3]; n];
+            let mut um = vec![[0.0; 3]; n];
+            op.apply(positions, &mut r, &mut un, &mut um);
+        }
+        r.par_iter_mut().zip(positions.par_iter()).zip(op.anchor2.par_iter()).for_each(|((ri, p), w2)| {
+            for c in 0..3 {
+                ri[c] = -(ri[c] - w2 * p[c]);
+            }
+        });
+        r
+    }
 
     /// The first solver, kept as the reference for tests: Jacobi-preconditioned
     /// matrix-free CG, stopping on the plain residual.
@@ -598,7 +614,7 @@ mod reference {
         let n = positions.len();
         let mut un = vec![[0.0; 3]; n];
         let mut um = vec![[0.0; 3]; n];
-        let mut r = super::rhs(op, positions);
+        let mut r = rhs(op, positions);
         let inv_diag: Vec<f64> = op.diagonal().into_par_iter().map(|d| 1.0 / d).collect();
         let mut d = vec![[0.0; 3]; n];
         let precondition = |r: &[V3], z: &mut [V3]| {
