@@ -159,9 +159,9 @@ fn vascular_forest(n: usize) -> Array3<u8> {
     mask
 }
 
-/// One contraction iteration (METHOD.md §2) on `g`, as the pipeline runs it.
+/// One contraction iteration (METHOD.md §2) on `g`, as the pipeline runs it on a cube.
 fn contract_once(g: &NodeGraph, p: &Params) -> NodeGraph {
-    let (next, _) = contract_step(g.clone(), p, CELL, &mut StageClock::default()).expect("cells in range");
+    let (next, _) = contract_step(g.clone(), p, CELL, None, &mut StageClock::default()).expect("cells in range");
     black_box(short_cycle_area(&next.graph, &next.positions, p.max_cycle_nodes));
     next
 }

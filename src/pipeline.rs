@@ -6,13 +6,14 @@ use crate::decimate::{decimate, NodeGraph, CELL_LIMIT};
 use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
-use crate::grid;
+use crate::grid::{self, filled};
 use crate::laplacian;
 use crate::params::{AreaReference, Params, STALL_AREA};
-use crate::precondition::NormalMatrix;
+use crate::precondition::{slab_axes, slab_order, NormalMatrix};
 use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared, Voxel};
 use ndarray::ArrayView3;
+use rayon::prelude::*;
 use std::time::Instant;
 
 /// A progress report, sent after every stage and every iteration.
@@ -69,9 +70,18 @@ fn report(
 
 /// One contraction iteration (Algorithm 1, lines 3–7): weights and anchoring from the
 /// current geometry, the least-squares solve of eq. 8, and decimation, with the time
-/// of each part added to `clock`. Runs on the current rayon pool.
-pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageClock) -> Result<(NodeGraph, SolveStats)> {
+/// of each part added to `clock`. The solve's rows are put in slabs along `axes[0]`
+/// when given ([`slab_axes`]), which changes its rounding, not its minimiser. Runs on
+/// the current rayon pool.
+pub fn contract_step(
+    mut g: NodeGraph,
+    p: &Params,
+    c: f64,
+    axes: Option<[usize; 3]>,
+    clock: &mut StageClock,
+) -> Result<(NodeGraph, SolveStats)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
+    let order = axes.map(|axes| clock.time("solve", || slab_order(&g.positions, c, axes)));
     // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
     // `M` itself, and the conjugate-gradient vectors are allocated after.
     let m = {
@@ -79,15 +89,30 @@ pub fn contract_step(mut g: NodeGraph, p: &Params, c: f64, clock: &mut StageCloc
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
-        clock.time("solve", || NormalMatrix::assemble(&op))
+        clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref()))
     };
     return_free_memory();
-    let r = clock.time("solve", || m.displacement_rhs(&g.positions));
-    let start = std::mem::take(&mut g.positions);
+    let start = match &order {
+        Some(order) => {
+            let positions = std::mem::take(&mut g.positions);
+            clock.time("solve", || order.par_iter().map(|&i| positions[i as usize]).collect())
+        }
+        None => std::mem::take(&mut g.positions),
+    };
+    let r = clock.time("solve", || m.displacement_rhs(&start));
     let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, p.cg_tol, p.cg_max_iterations));
     drop(m);
     return_free_memory();
-    g.positions = moved;
+    g.positions = match &order {
+        Some(order) => clock.time("solve", || {
+            let mut positions = filled(order.len(), [0.0; 3]);
+            for (&i, q) in order.iter().zip(moved) {
+                positions[i as usize] = q;
+            }
+            positions
+        }),
+        None => moved,
+    };
     let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
     Ok((next, stats))
 }
@@ -162,6 +187,7 @@ impl Skeletonizer {
                 )));
             }
         }
+        let axes = slab_axes([n0, n1, n2]);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(self.params.threads)
             .build()
@@ -198,7 +224,7 @@ impl Skeletonizer {
         let mut a_t = a0;
         info.converged = a_t <= info.area_reference;
         while !info.converged && info.iterations < p.max_iterations {
-            let (next, stats) = pool.install(|| contract_step(std::mem::take(&mut g), p, c, &mut clock))?;
+            let (next, stats) = pool.install(|| contract_step(std::mem::take(&mut g), p, c, axes, &mut clock))?;
             g = next;
             a_t = clock.time("cycles", || area(&g));
             info.iterations += 1;

@@ -91,7 +91,7 @@ pub struct SolveStats {
 /// by conjugate gradients on the assembled `M` preconditioned by block symmetric
 /// Gauss–Seidel ([`NormalMatrix::sgs_dot`]).
 pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
-    let m = NormalMatrix::assemble(op);
+    let m = NormalMatrix::assemble(op, None);
     let r = m.displacement_rhs(positions);
     solve(&m, positions.to_vec(), r, tol, max_iterations)
 }
@@ -334,7 +334,7 @@ mod tests {
             // In blocks of one row every entry is computed and stored by both its rows,
             // so symmetry is the assembly's, not the storage's.
             for bs in [1, 7, n] {
-                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
+                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
                 let got = stored(&m);
                 for j in 0..n {
                     assert_eq!(m.diag[j], got[j][j]);
@@ -342,6 +342,30 @@ mod tests {
                         assert!((got[j][k] - want[j][k]).abs() <= 1e-6 * want[j][j], "M[{j}][{k}]");
                         assert_eq!(got[j][k].to_bits(), got[k][j].to_bits(), "M[{j}][{k}] vs M[{k}][{j}]");
                     }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn rows_in_another_order_are_the_same_matrix_permuted() {
+        let pb = block(4, 5, 6);
+        let n = pb.p.len();
+        // A fixed shuffle of the nodes.
+        let mut order: Vec<u32> = (0..n as u32).collect();
+        for (a, v) in noise(n, 7).iter().enumerate() {
+            order.swap(a, ((v[0] + 1.0) / 2.0 * (n - a) as f64) as usize % (n - a) + a);
+        }
+        assert!(order.iter().enumerate().any(|(a, &j)| a != j as usize));
+        for bs in [1, 7, n] {
+            let plain = stored(&NormalMatrix::assemble_in_blocks(&pb.op(), bs, None));
+            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, Some(&order));
+            let got = stored(&m);
+            for a in 0..n {
+                assert_eq!(m.diag[a], plain[order[a] as usize][order[a] as usize]);
+                for b in 0..n {
+                    let want = plain[order[a] as usize][order[b] as usize];
+                    assert_eq!(got[a][b].to_bits(), want.to_bits(), "block {bs}: M[{a}][{b}]");
                 }
             }
         }
@@ -357,7 +381,7 @@ mod tests {
             assert!(scale > 1e-3);
             let far: Vec<V3> = pb.p.iter().map(|q| q.map(|v| v + 1e4)).collect();
             for bs in [1, 7, n] {
-                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
+                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
                 let got = m.displacement_rhs(&pb.p);
                 // `M` is stored in f32: its relative rounding, ~1e-7.
                 assert!(max_diff(&got, &want) <= 1e-6 * scale, "block {bs}");
@@ -388,7 +412,7 @@ mod tests {
         let pb = block(5, 6, 7);
         let n = pb.p.len();
         for bs in [n, 50, 17] {
-            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
+            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
             for seed in 0..5 {
                 let (u, v) = (noise(n, 2 * seed), noise(n, 2 * seed + 1));
                 let (mut bu, mut bv) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
@@ -443,7 +467,7 @@ mod tests {
         let pb = block(6, 7, 8);
         let b = pb.rhs();
         for bs in [b.len(), 64, 25] {
-            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs);
+            let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
             let (want, k) = explicit_pcg(&m, &b, 1e-10, 500);
             let (got, stats) = solve(&m, vec![[0.0; 3]; b.len()], b.clone(), 1e-10, 500);
             assert!(stats.converged);
@@ -461,7 +485,7 @@ mod tests {
     #[test]
     fn solve_matches_a_dense_solve_of_the_assembled_matrix() {
         let pb = block(3, 4, 5);
-        let m = NormalMatrix::assemble_in_blocks(&pb.op(), 13);
+        let m = NormalMatrix::assemble_in_blocks(&pb.op(), 13, None);
         let n = m.rows();
         let dense_m = stored(&m);
         let b = pb.rhs();
@@ -480,7 +504,9 @@ mod tests {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| match block {
                 None => contract(&pb.op(), &pb.p, 1e-8, 500),
-                Some(bs) => solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs), pb.p.clone(), pb.rhs(), 1e-8, 500),
+                Some(bs) => {
+                    solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs, None), pb.p.clone(), pb.rhs(), 1e-8, 500)
+                }
             })
         };
         let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), &pb.p, 1e-8, 500);
@@ -708,7 +734,11 @@ mod harness {
         let g = NodeGraph { graph: g.graph, positions: g.positions, radii: g.radii, component: g.component };
         let mut clock = StageClock::default();
         let t = Instant::now();
-        let (_, stats) = pool.install(|| contract_step(g.clone(), &p, 1.0, &mut clock)).unwrap();
+        let (_, stats) = pool
+            .install(|| {
+                contract_step(g.clone(), &p, 1.0, crate::precondition::slab_axes(mask.dim().into()), &mut clock)
+            })
+            .unwrap();
         let dt = t.elapsed().as_secs_f64();
         if std::env::var("VF_COMPARE").is_ok() {
             let ln = crate::laplacian::l2_norm(&g.graph, &g.positions);
@@ -718,7 +748,7 @@ mod harness {
             {
                 let n = g.positions.len();
                 let t = Instant::now();
-                let m = pool.install(|| super::NormalMatrix::assemble(&op));
+                let m = pool.install(|| super::NormalMatrix::assemble(&op, None));
                 let t_asm = t.elapsed().as_secs_f64();
                 let x: Vec<[f64; 3]> = g.positions.iter().map(|q| [q[0].sin(), q[1].cos(), q[2]]).collect();
                 let mut y = vec![[0.0; 3]; n];
