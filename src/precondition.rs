@@ -56,6 +56,8 @@ pub struct NormalMatrix {
     pub diag: Vec<f64>,
     /// Rows per Gauss–Seidel block (the last block may be shorter).
     block: usize,
+    /// The largest `k - j` of an in-block upper entry `M_jk` (0 if none).
+    reach: usize,
     /// Rows `s << shift..` in stripe `s`.
     stripes: Vec<Stripe>,
     shift: u32,
@@ -70,6 +72,8 @@ struct Stripe {
     /// Row `t`'s in-block upper entries: `upper[upper_at[t]..upper_at[t + 1]]`.
     upper: Vec<(u32, f32)>,
     upper_at: Vec<u32>,
+    /// The largest `k - j` of its rows' upper entries.
+    reach: usize,
 }
 
 impl Stripe {
@@ -87,6 +91,7 @@ impl Stripe {
                 self.outer.push((k, v));
             } else if col > j {
                 self.upper.push((k, v));
+                self.reach = self.reach.max(col - j);
             }
         }
         // In range: see `stripe_shift`.
@@ -226,7 +231,7 @@ impl NormalMatrix {
         let scratch = PerThread::new(|| (filled(n, 0u32), Vec::with_capacity(64), Stripe::new()));
         let mut diag = filled(n, 0.0f64);
         let shift = stripe_shift(op.graph);
-        let stripes = diag
+        let stripes: Vec<Stripe> = diag
             .par_chunks_mut(1 << shift)
             .enumerate()
             .map(|(b, diag)| {
@@ -250,7 +255,8 @@ impl NormalMatrix {
                 })
             })
             .collect();
-        NormalMatrix { diag, block, stripes, shift }
+        let reach = stripes.iter().map(|s| s.reach).max().unwrap_or(0);
+        NormalMatrix { diag, block, reach, stripes, shift }
     }
 
     /// Number of rows.
@@ -393,22 +399,20 @@ impl NormalMatrix {
         });
     }
 
-    /// Eisenstat's first half, with the previous iteration's update folded in: per row
-    /// `x += step s`, `y -= step w` (the new residual's forward solve), `ŝ ← D y + beta ŝ`,
-    /// then `s = (D + U)⁻¹ ŝ` (block upper triangular solve), so that `s = z + beta s_old`
-    /// for the Gauss–Seidel `z` of the new residual. `w` is left zero, ready for
-    /// [`NormalMatrix::forward_product`]. Returns, per coordinate and summed per block in
-    /// order, `[s · ŝ, s · U s]`.
+    /// Eisenstat's first half, with the previous iteration's update of `x` folded in:
+    /// per row `x += step s`, `ŝ ← D y + beta ŝ`, then `s = (D + U)⁻¹ ŝ` (block upper
+    /// triangular solve), so that `s = z + beta s_old` for the Gauss–Seidel `z` of the
+    /// current residual. Returns, per coordinate and summed per block in order,
+    /// `[s · ŝ, s · U s]`.
     pub fn backward(&self, k: &mut Krylov, step: V3, beta: V3) -> [V3; 2] {
         let bs = self.block;
-        let Krylov { x, y, hat, s, w } = k;
+        let Krylov { x, y, hat, s, .. } = k;
+        let y = &*y;
         let parts: Vec<[V3; 2]> = x
             .par_chunks_mut(bs)
-            .zip(y.par_chunks_mut(bs))
             .zip(hat.par_chunks_mut(bs).zip(s.par_chunks_mut(bs)))
-            .zip(w.par_chunks_mut(bs))
             .enumerate()
-            .map(|(b, (((xs, ys), (hs, ss)), ws))| {
+            .map(|(b, (xs, (hs, ss)))| {
                 let lo = b * bs;
                 let mut dots = [[0.0; 3]; 2];
                 for j in (lo..lo + ss.len()).rev() {
@@ -416,10 +420,8 @@ impl NormalMatrix {
                     let dj = self.diag[j];
                     for c in 0..3 {
                         xs[t][c] += step[c] * ss[t][c];
-                        ys[t][c] -= step[c] * ws[t][c];
-                        hs[t][c] = dj * ys[t][c] + beta[c] * hs[t][c];
+                        hs[t][c] = dj * y[j][c] + beta[c] * hs[t][c];
                     }
-                    ws[t] = [0.0; 3];
                     let u = gather_local(self.upper_entries(j), ss, lo, hs[t], -1.0);
                     let inv = 1.0 / dj;
                     ss[t] = [u[0] * inv, u[1] * inv, u[2] * inv];
@@ -435,44 +437,73 @@ impl NormalMatrix {
         parts.iter().fold([[0.0; 3]; 2], |a, p| std::array::from_fn(|t| std::array::from_fn(|c| a[t][c] + p[t][c])))
     }
 
-    /// Eisenstat's second half, one pass over the entries: `w = (D + L)⁻¹ M s` with
-    /// `M s = ŝ + (L + E) s` (`(D + U) s = ŝ`, `E` the entries in other blocks), i.e.
-    /// `D w = ŝ + E s - L (w - s)`, solved column by column like
-    /// [`NormalMatrix::forward`] (`w` is zero on entry). Returns, per coordinate and
-    /// summed per block in order, `[s · E s, y · D y, w · D y, w · D w]`: with
-    /// [`NormalMatrix::backward`]'s `s · ŝ + s · U s` (`s · L s = s · U s`, `M` being
-    /// symmetric) the step's denominator `s · M s`, then `r · z` of the current residual,
-    /// and what `r · z` of the next one (forward solve `y - step w`) needs.
-    pub fn forward_product(&self, k: &mut Krylov) -> [V3; 4] {
-        let bs = self.block;
-        let Krylov { y, hat, s, w, .. } = k;
-        let (y, hat, s) = (&*y, &*hat, &*s);
-        let parts: Vec<[V3; 4]> = w
-            .par_chunks_mut(bs)
+    /// `s · E s` per coordinate (`E` the entries in other blocks), summed per block in
+    /// order: the last term of the step's denominator
+    /// `s · M s = s · ŝ + s · U s + s · E s` (`s · L s = s · U s`, `M` being symmetric).
+    pub fn outer_product(&self, s: &[V3]) -> V3 {
+        let parts: Vec<V3> = s
+            .par_chunks(self.block)
             .enumerate()
-            .map(|(b, ws)| {
-                let lo = b * bs;
-                let mut dots = [[0.0; 3]; 4];
-                for j in lo..lo + ws.len() {
+            .map(|(b, ss)| {
+                let lo = b * self.block;
+                let mut dot = [0.0; 3];
+                for (j, sj) in (lo..).zip(ss) {
                     let e = gather(self.outer_entries(j), s, [0.0; 3]);
-                    let dj = self.diag[j];
-                    let inv = 1.0 / dj;
-                    let acc = ws[j - lo];
-                    let wj: V3 = std::array::from_fn(|c| (hat[j][c] + e[c] - acc[c]) * inv);
                     for c in 0..3 {
-                        let (dy, dw) = (dj * y[j][c], dj * wj[c]);
-                        dots[0][c] += s[j][c] * e[c];
-                        dots[1][c] += dy * y[j][c];
-                        dots[2][c] += dw * y[j][c];
-                        dots[3][c] += dw * wj[c];
+                        dot[c] += sj[c] * e[c];
                     }
-                    ws[j - lo] = wj;
-                    scatter(self.upper_entries(j), ws, lo, std::array::from_fn(|c| wj[c] - s[j][c]), 1.0);
                 }
-                dots
+                dot
             })
             .collect();
-        parts.iter().fold([[0.0; 3]; 4], |a, p| std::array::from_fn(|t| std::array::from_fn(|c| a[t][c] + p[t][c])))
+        parts.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]])
+    }
+
+    /// Eisenstat's second half, one pass over the entries, with the step known: the
+    /// residual's forward solve `y -= step w` for `w = (D + L)⁻¹ M s`, where
+    /// `M s = ŝ + (L + E) s` (`(D + U) s = ŝ`), i.e. `D w = ŝ + E s - L (w - s)`,
+    /// solved column by column like [`NormalMatrix::forward`]. `w` is never stored:
+    /// the parts `M_kj (w_j - s_j)` that row `j` sends to the rows `k` after it wait in
+    /// a ring (one per worker thread, zero between blocks: every row takes its part out)
+    /// of a power of two above the largest `k - j` of an in-block upper entry. Returns
+    /// `r · z = y · D y` of the new residual per coordinate, summed per block in order.
+    pub fn forward_product(&self, k: &mut Krylov, step: V3) -> V3 {
+        let bs = self.block;
+        let Krylov { y, hat, s, rings, .. } = k;
+        let (hat, s, rings) = (&*hat, &*s, &*rings);
+        let parts: Vec<V3> = y
+            .par_chunks_mut(bs)
+            .enumerate()
+            .map(|(b, ys)| {
+                rings.with(|pending| {
+                    let lo = b * bs;
+                    let mask = pending.len() - 1;
+                    let mut dot = [0.0; 3];
+                    for j in lo..lo + ys.len() {
+                        let e = gather(self.outer_entries(j), s, [0.0; 3]);
+                        let dj = self.diag[j];
+                        let inv = 1.0 / dj;
+                        let slot = (j - lo) & mask;
+                        let acc = std::mem::replace(&mut pending[slot], [0.0; 3]);
+                        let wj: V3 = std::array::from_fn(|c| (hat[j][c] + e[c] - acc[c]) * inv);
+                        let yj = &mut ys[j - lo];
+                        for c in 0..3 {
+                            yj[c] -= step[c] * wj[c];
+                            dot[c] += dj * yj[c] * yj[c];
+                        }
+                        let v: V3 = std::array::from_fn(|c| wj[c] - s[j][c]);
+                        for &(k, m) in self.upper_entries(j) {
+                            let (m, pk) = (m as f64, &mut pending[(k as usize - lo) & mask]);
+                            for c in 0..3 {
+                                pk[c] += m * v[c];
+                            }
+                        }
+                    }
+                    dot
+                })
+            })
+            .collect();
+        parts.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]])
     }
 }
 
@@ -487,8 +518,8 @@ pub struct Krylov {
     pub hat: Vec<V3>,
     /// The search direction `s`.
     pub s: Vec<V3>,
-    /// `w = (D + L)⁻¹ M s`.
-    pub w: Vec<V3>,
+    /// Per worker thread, the ring of [`NormalMatrix::forward_product`], all zero.
+    rings: PerThread<Vec<V3>>,
 }
 
 impl Krylov {
@@ -499,7 +530,8 @@ impl Krylov {
         let mut y = r;
         m.forward(&mut y);
         let zero = || filled(n, [0.0; 3]);
-        Krylov { x, y, hat: zero(), s: zero(), w: zero() }
+        let rings = PerThread::new(|| vec![[0.0; 3]; (m.reach + 1).next_power_of_two()]);
+        Krylov { x, y, hat: zero(), s: zero(), rings }
     }
 }
 

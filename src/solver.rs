@@ -107,33 +107,34 @@ pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations:
     // in Eisenstat's form: the search direction `s` is kept with `ŝ = (D + U) s`, so
     // `M s = ŝ + (L + E) s` needs no product of its own: every iteration reads the stored
     // in-block upper entries twice (row by row in `backward`, column by column for `L`
-    // in `forward_product`) and the entries in other blocks once. The residual is
-    // carried only as `y = (D + L)⁻¹ r`, updated as `y - step (D + L)⁻¹ M s`;
-    // `r · B r = y · D y` is both the CG scalar and the stop test, so neither `r` nor
-    // `M s` is stored. `r · B r` of the next residual follows
-    // from dot products taken in `forward_product`, so the updates of `x` and `y` wait
-    // for the next `backward` pass instead of a pass of their own.
+    // in `forward_product`) and the entries in other blocks twice (`s · E s` for the
+    // step, then `E s` in `forward_product`). The residual is carried only as
+    // `y = (D + L)⁻¹ r`, updated row by row in `forward_product` as
+    // `y - step (D + L)⁻¹ M s` once the step is known; `r · B r = y · D y` is both the
+    // CG scalar and the stop test, so neither `r` nor `M s` is stored. The update of `x`
+    // waits for the next `backward` pass instead of a pass of its own.
     let mut k = Krylov::start(m, x, r);
-    let rz0 = weighted_norms(&m.diag, &k.y);
+    let mut rz = weighted_norms(&m.diag, &k.y);
+    let rz0 = rz;
     let mut active = rz0.map(|x| x > 0.0);
     let (mut step, mut beta) = ([0.0; 3], [0.0; 3]);
     let mut iterations = 0;
     while active.iter().any(|&a| a) && iterations < max_iterations {
         iterations += 1;
         let [sh, su] = m.backward(&mut k, step, beta);
-        let [se, rz, wy, ww] = m.forward_product(&mut k);
-        // `s · M s = s · ŝ + s · L s + s · E s`, with `s · L s = s · U s`.
+        let se = m.outer_product(&k.s);
         let pq: V3 = std::array::from_fn(|c| sh[c] + su[c] + se[c]);
         step = std::array::from_fn(|c| if active[c] && pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 });
-        let rz_new: V3 = std::array::from_fn(|c| rz[c] - 2.0 * step[c] * wy[c] + step[c] * step[c] * ww[c]);
+        let rz_new = m.forward_product(&mut k, step);
         for c in 0..3 {
             if active[c] && (rz_new[c] <= tol * tol * rz0[c] || pq[c] <= 0.0) {
                 active[c] = false;
             }
         }
         beta = std::array::from_fn(|c| if active[c] && rz[c] > 0.0 { rz_new[c] / rz[c] } else { 0.0 });
+        rz = rz_new;
     }
-    // The last step's update of `x` (its `y` is not needed).
+    // The last step's update of `x`.
     k.x.par_iter_mut().zip(k.s.par_iter()).for_each(|(x, s)| *x = std::array::from_fn(|c| x[c] + step[c] * s[c]));
     let converged = !active.iter().any(|&a| a);
     (k.x, SolveStats { iterations, converged })
