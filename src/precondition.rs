@@ -300,7 +300,7 @@ impl NormalMatrix {
                     let own = gather(self.outer_entries(j), x, own);
                     let yj = &mut ys[j - lo];
                     *yj = std::array::from_fn(|c| yj[c] + own[c]);
-                    scatter(self.upper_entries(j), ys, lo, x[j], 1.0);
+                    scatter(self.upper_entries(j), ys, lo, usize::MAX, x[j], 1.0);
                 }
                 let mut dot = [0.0; 3];
                 for (yj, xj) in ys.iter().zip(&x[lo..]) {
@@ -328,21 +328,23 @@ impl NormalMatrix {
             let lo = b * bs;
             for j in lo..lo + rs.len() {
                 let pj = p[j];
-                // Row `j`'s in-block lower part has arrived from the rows before it.
+                // Row `j`'s in-block lower part has arrived from the rows before it; each
+                // upper entry also sends row `k` its part.
                 let mut acc = rs[j - lo];
-                for &(k, m) in self.upper_entries(j).iter().chain(self.outer_entries(j)) {
+                for &(k, m) in self.upper_entries(j) {
+                    let (m, k) = (m as f64, k as usize);
+                    for c in 0..3 {
+                        acc[c] += m * (pj[c] - p[k][c]);
+                        rs[k - lo][c] += m * (p[k][c] - pj[c]);
+                    }
+                }
+                for &(k, m) in self.outer_entries(j) {
                     let (m, pk) = (m as f64, &p[k as usize]);
                     for c in 0..3 {
                         acc[c] += m * (pj[c] - pk[c]);
                     }
                 }
                 rs[j - lo] = acc;
-                for &(k, m) in self.upper_entries(j) {
-                    let (m, k) = (m as f64, k as usize);
-                    for c in 0..3 {
-                        rs[k - lo][c] += m * (p[k][c] - pj[c]);
-                    }
-                }
             }
         });
         r
@@ -394,7 +396,7 @@ impl NormalMatrix {
                 let inv = 1.0 / self.diag[j];
                 let yj = ys[j - lo].map(|t| t * inv);
                 ys[j - lo] = yj;
-                scatter(self.upper_entries(j), ys, lo, yj, -1.0);
+                scatter(self.upper_entries(j), ys, lo, usize::MAX, yj, -1.0);
             }
         });
     }
@@ -492,12 +494,7 @@ impl NormalMatrix {
                             dot[c] += dj * yj[c] * yj[c];
                         }
                         let v: V3 = std::array::from_fn(|c| wj[c] - s[j][c]);
-                        for &(k, m) in self.upper_entries(j) {
-                            let (m, pk) = (m as f64, &mut pending[(k as usize - lo) & mask]);
-                            for c in 0..3 {
-                                pk[c] += m * v[c];
-                            }
-                        }
+                        scatter(self.upper_entries(j), pending, lo, mask, v, 1.0);
                     }
                     dot
                 })
@@ -548,11 +545,12 @@ fn gather_local(entries: &[(u32, f32)], x: &[V3], lo: usize, mut acc: V3, sign: 
 }
 
 /// `x_k += sign * m_jk v` for the given entries of row `j`, in a block whose values `x`
-/// start at row `lo`.
+/// start at row `lo`: row `k` at `(k - lo) & mask` (`usize::MAX`: the block itself; a
+/// power of two less one: a ring as wide as the rows' reach).
 #[inline]
-fn scatter(entries: &[(u32, f32)], x: &mut [V3], lo: usize, v: V3, sign: f64) {
+fn scatter(entries: &[(u32, f32)], x: &mut [V3], lo: usize, mask: usize, v: V3, sign: f64) {
     for &(k, m) in entries {
-        let (m, xk) = (m as f64, &mut x[k as usize - lo]);
+        let (m, xk) = (m as f64, &mut x[(k as usize - lo) & mask]);
         for c in 0..3 {
             xk[c] += sign * (m * v[c]);
         }
