@@ -26,7 +26,13 @@ use crate::solver::NormalOperator;
 use rayon::prelude::*;
 use std::ops::Range;
 
-type V3 = [f64; 3];
+pub type V3 = [f64; 3];
+
+/// Per-block partial sums added in block order, so the total does not depend on the
+/// thread count.
+pub fn sum_parts(parts: &[V3]) -> V3 {
+    parts.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]])
+}
 
 /// Fewest rows in a Gauss–Seidel block (thin blocks lose coupling and iterations grow).
 const MIN_BLOCK: usize = 32_768;
@@ -270,17 +276,23 @@ impl NormalMatrix {
         self.rows() + self.stripes.iter().map(|s| s.outer.len() + s.upper.len()).sum::<usize>()
     }
 
+    /// The stripe holding row `j`, and the row's place in it.
+    #[inline]
+    fn stripe_of(&self, j: usize) -> (&Stripe, usize) {
+        (&self.stripes[j >> self.shift], j & ((1 << self.shift) - 1))
+    }
+
     /// Row `j`'s entries in other Gauss–Seidel blocks.
     #[inline]
     fn outer_entries(&self, j: usize) -> &[(u32, f32)] {
-        let (s, t) = (&self.stripes[j >> self.shift], j & ((1 << self.shift) - 1));
+        let (s, t) = self.stripe_of(j);
         &s.outer[s.outer_at[t] as usize..s.outer_at[t + 1] as usize]
     }
 
     /// Row `j`'s in-block upper entries.
     #[inline]
     fn upper_entries(&self, j: usize) -> &[(u32, f32)] {
-        let (s, t) = (&self.stripes[j >> self.shift], j & ((1 << self.shift) - 1));
+        let (s, t) = self.stripe_of(j);
         &s.upper[s.upper_at[t] as usize..s.upper_at[t + 1] as usize]
     }
 
@@ -311,7 +323,7 @@ impl NormalMatrix {
                 dot
             })
             .collect();
-        parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
+        sum_parts(&parts)
     }
 
     /// The right-hand side of the displacement system at the positions `p`,
@@ -382,7 +394,7 @@ impl NormalMatrix {
                 dot
             })
             .collect();
-        parts.iter().fold([0.0; 3], |a, s| [a[0] + s[0], a[1] + s[1], a[2] + s[2]])
+        sum_parts(&parts)
     }
 
     /// `y ← (D + L)⁻¹ y` (block lower triangular solve, in place, column by column:
@@ -458,7 +470,7 @@ impl NormalMatrix {
                 dot
             })
             .collect();
-        parts.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]])
+        sum_parts(&parts)
     }
 
     /// Eisenstat's second half, one pass over the entries, with the step known: the
@@ -500,7 +512,7 @@ impl NormalMatrix {
                 })
             })
             .collect();
-        parts.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]])
+        sum_parts(&parts)
     }
 }
 

@@ -30,10 +30,8 @@
 use crate::grid::Csr;
 use crate::laplacian::Laplacian;
 use crate::params::Params;
-use crate::precondition::{Krylov, NormalMatrix};
+use crate::precondition::{sum_parts, Krylov, NormalMatrix, V3};
 use rayon::prelude::*;
-
-type V3 = [f64; 3];
 
 /// Entries per parallel chunk of the vector reductions.
 const CHUNK: usize = 8192;
@@ -74,7 +72,7 @@ fn weighted_norms(w: &[f64], y: &[V3]) -> V3 {
             s
         })
         .collect();
-    parts.iter().fold([0.0; 3], |acc, s| [acc[0] + s[0], acc[1] + s[1], acc[2] + s[2]])
+    sum_parts(&parts)
 }
 
 /// Outcome of one solve.
