@@ -16,7 +16,7 @@
 //! This hot path is written here rather than taken from petgraph/rustworkx, whose
 //! cycle bases materialise every cycle.
 
-use crate::grid::{filled, Csr, PerThread};
+use crate::grid::{Csr, PerThread};
 use rayon::prelude::*;
 use std::collections::VecDeque;
 
@@ -138,7 +138,10 @@ impl Search {
     /// [`Search::shortest_cycle_through`] by the bounded breadth-first search itself.
     fn breadth_first(&mut self, g: &Csr, u: u32, v: u32, max_nodes: usize) -> bool {
         if self.stamp.len() != g.nodes() {
-            (self.stamp, self.parent, self.now) = (filled(g.nodes(), 0), filled(g.nodes(), 0), 0);
+            // Plain allocations, not the parallel `filled`: this runs inside
+            // `PerThread::with`, where a rayon call would let this thread steal
+            // another search of the same pass.
+            (self.stamp, self.parent, self.now) = (vec![0; g.nodes()], vec![0; g.nodes()], 0);
         }
         self.now = self.now.wrapping_add(1);
         if self.now == 0 {

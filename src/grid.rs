@@ -108,18 +108,35 @@ pub fn filled<T: Copy + Send + Sync>(n: usize, value: T) -> Vec<T> {
 
 /// One scratch value per worker thread of the current rayon pool, lent by thread
 /// index, so a parallel pass can reuse large buffers without allocating per task.
-pub struct PerThread<T>(Vec<Mutex<T>>);
+///
+/// A slot is never waited for: if the calling thread's slot is taken (the closure
+/// of [`PerThread::with`] reached a rayon call, whose work stealing ran another task
+/// of the same pass on this thread), that task gets a fresh value from `make`.
+/// Waiting there would deadlock: the holder is suspended below us on the same thread.
+/// The scratch values must therefore carry nothing from task to task that changes a
+/// result, only capacity.
+pub struct PerThread<T> {
+    slots: Vec<Mutex<T>>,
+    make: Box<dyn Fn() -> T + Send + Sync>,
+}
 
 impl<T> PerThread<T> {
     /// `make()` once per thread of the current pool.
-    pub fn new(make: impl Fn() -> T) -> PerThread<T> {
-        PerThread((0..rayon::current_num_threads()).map(|_| Mutex::new(make())).collect())
+    pub fn new(make: impl Fn() -> T + Send + Sync + 'static) -> PerThread<T> {
+        PerThread {
+            slots: (0..rayon::current_num_threads()).map(|_| Mutex::new(make())).collect(),
+            make: Box::new(make),
+        }
     }
 
-    /// `f` on the calling thread's value.
+    /// `f` on the calling thread's value, or on a fresh one if that is in use.
     pub fn with<R>(&self, f: impl FnOnce(&mut T) -> R) -> R {
-        let slot = rayon::current_thread_index().unwrap_or(0) % self.0.len();
-        f(&mut self.0[slot].lock().unwrap_or_else(|e| e.into_inner()))
+        let slot = rayon::current_thread_index().unwrap_or(0) % self.slots.len();
+        match self.slots[slot].try_lock() {
+            Ok(mut value) => f(&mut value),
+            Err(std::sync::TryLockError::Poisoned(e)) => f(&mut e.into_inner()),
+            Err(std::sync::TryLockError::WouldBlock) => f(&mut (self.make)()),
+        }
     }
 }
 
@@ -387,6 +404,41 @@ mod tests {
     fn grid(mask: &Array3<u8>, params: &Params) -> GridGraph {
         let e = crate::volume::edt_squared(mask.view(), [1.0; 3]);
         build(mask.view(), &e, [1.0; 3], params)
+    }
+
+    /// A rayon call inside `PerThread::with` lets the thread steal another task of
+    /// the same pass, which then asks for the same slot. With a waiting lock this
+    /// hangs (the short-cycle search did, at 8 threads); the slot must be lent afresh.
+    #[test]
+    fn per_thread_scratch_never_waits_on_its_own_thread() {
+        let (done, finished) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(8).build().unwrap();
+            let total: u64 = pool.install(|| {
+                let scratch = PerThread::new(Vec::<u64>::new);
+                (0..200u64)
+                    .into_par_iter()
+                    .map(|i| {
+                        scratch.with(|s| {
+                            s.push(i);
+                            let inner: u64 = (0..64u64)
+                                .into_par_iter()
+                                .map(|k| {
+                                    scratch.with(|t| {
+                                        t.push(k);
+                                        k
+                                    })
+                                })
+                                .sum();
+                            inner + i
+                        })
+                    })
+                    .sum()
+            });
+            done.send(total).unwrap();
+        });
+        let total = finished.recv_timeout(std::time::Duration::from_secs(60)).expect("PerThread deadlocked");
+        assert_eq!(total, 200 * (63 * 64 / 2) + 199 * 200 / 2);
     }
 
     #[test]

@@ -15,6 +15,7 @@
 //! | [`precondition`] | the assembled normal matrix and its block Gauss–Seidel preconditioner | eq. 8 |
 //! | [`decimate`] | cell-hash clustering with max-radius transfer | §III-E, §III-F |
 //! | [`cycles`] | short fundamental cycles: convergence area and refinement | §III-C, §III-G, eqs. 10–11 |
+//! | [`inside`] | nodes on background voxels moved to the nearest vessel voxel | — |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
@@ -39,6 +40,7 @@ pub mod ends;
 pub mod error;
 pub mod graph;
 pub mod grid;
+pub mod inside;
 pub mod laplacian;
 pub mod params;
 pub mod pipeline;

@@ -7,6 +7,7 @@ use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled};
+use crate::inside::keep_inside;
 use crate::laplacian;
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
@@ -271,8 +272,12 @@ impl Skeletonizer {
         let out = clock.time("output", || {
             let shift = p.radius_correction * c;
             let radii: Vec<f64> = g.radii.iter().map(|r| (r - shift).max(0.0)).collect();
+            g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             let positions = if p.anchor_ends {
-                pool.install(|| extend_ends(&g.graph, &g.positions, &radii, mask, spacing))
+                // A moved end can stop past a background voxel the line grazed
+                // between two samples: it is kept inside once more.
+                let ends = pool.install(|| extend_ends(&g.graph, &g.positions, &radii, mask, spacing));
+                pool.install(|| keep_inside(&ends, mask, spacing))
             } else {
                 std::mem::take(&mut g.positions)
             };

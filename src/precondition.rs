@@ -234,7 +234,7 @@ impl NormalMatrix {
         // Per worker: the column slots, a row accumulator and a stripe to build in, whose
         // contents are then copied to vectors of exactly their length (a stripe grown
         // in place would keep up to twice its size).
-        let scratch = PerThread::new(|| (filled(n, 0u32), Vec::with_capacity(64), Stripe::new()));
+        let scratch = PerThread::new(move || (filled(n, 0u32), Vec::with_capacity(64), Stripe::new()));
         let mut diag = filled(n, 0.0f64);
         let shift = stripe_shift(op.graph);
         let stripes: Vec<Stripe> = diag
@@ -539,7 +539,8 @@ impl Krylov {
         let mut y = r;
         m.forward(&mut y);
         let zero = || filled(n, [0.0; 3]);
-        let rings = PerThread::new(|| vec![[0.0; 3]; (m.reach + 1).next_power_of_two()]);
+        let ring = (m.reach + 1).next_power_of_two();
+        let rings = PerThread::new(move || vec![[0.0; 3]; ring]);
         Krylov { x, y, hat: zero(), s: zero(), rings }
     }
 }
