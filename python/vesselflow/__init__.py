@@ -13,6 +13,14 @@ from vesselflow._core import __version__
 from vesselflow.graph import VesselGraph
 from vesselflow.io import load_graph
 from vesselflow.skeletonizer import Skeletonizer, skeletonize
-from vesselflow.volumes import load_volume
+from vesselflow.volumes import VolumeError, load_volume
 
-__all__ = ["Skeletonizer", "VesselGraph", "__version__", "load_graph", "load_volume", "skeletonize"]
+__all__ = [
+    "Skeletonizer",
+    "VesselGraph",
+    "VolumeError",
+    "__version__",
+    "load_graph",
+    "load_volume",
+    "skeletonize",
+]

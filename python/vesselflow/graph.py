@@ -39,8 +39,9 @@ class VesselGraph:
     params : dict
         Parameters of the run; empty when unknown.
 
-    The constructor takes anything array-like, converts it to these dtypes and
-    checks the shapes and edge ids (``ValueError``).
+    The constructor takes anything array-like, converts it to these dtypes and checks
+    it with :func:`check_graph_arrays` (``ValueError`` naming the problem). Repeated
+    edges are kept (every format keeps them); self-loops are refused.
     """
 
     positions: NDArray[np.float64]
@@ -59,19 +60,14 @@ class VesselGraph:
         info: Mapping[str, Any] | None = None,
         params: Mapping[str, Any] | None = None,
     ) -> None:
-        self.positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        self.radii = np.asarray(radii, dtype=np.float64).reshape(-1)
-        self.edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-        self.spacing = np.asarray(spacing, dtype=np.float64).reshape(-1)
+        try:
+            self.positions, self.radii, self.edges, self.spacing = check_graph_arrays(
+                positions, radii, edges, spacing
+            )
+        except ValueError as e:
+            raise ValueError(f"invalid graph: {e}{_RUN_HINT}") from None
         self.info = dict(info or {})
         self.params = dict(params or {})
-        n = len(self.positions)
-        if len(self.radii) != n:
-            raise ValueError(f"{n} positions but {len(self.radii)} radii")
-        if self.spacing.shape != (3,):
-            raise ValueError(f"spacing must hold 3 numbers, got {self.spacing.shape[0]}")
-        if self.edges.size and (self.edges.min() < 0 or self.edges.max() >= n):
-            raise ValueError(f"edges refer to nodes outside 0..{n - 1}")
 
     @property
     def n_nodes(self) -> int:
@@ -107,10 +103,17 @@ class VesselGraph:
         lines), ``.vtp`` (VTK PolyData with a ``radius`` point array; needs the ``io``
         extra) and ``.csv`` (nodes table ``graph.csv`` plus edges table
         ``graph.edges.csv``) by :mod:`vesselflow.io`. Every file is written atomically
-        (a temporary file in the same folder, then renamed)."""
+        (a temporary file in the same folder, then renamed; the two CSV tables are
+        replaced together or not at all). The arrays are checked first
+        (:func:`check_graph_arrays`, ``ValueError``)."""
         from vesselflow.io import WRITERS, graph_extension
 
-        write = WRITERS.get(graph_extension(path))
+        extension = graph_extension(path)
+        try:  # the arrays are public attributes: check what is written, not what was built
+            check_graph_arrays(self.positions, self.radii, self.edges, self.spacing)
+        except ValueError as e:
+            raise ValueError(f"cannot save {path}: invalid graph: {e}{_RUN_HINT}") from None
+        write = WRITERS.get(extension)
         if write is not None:
             write(self, Path(path))
             return
@@ -176,3 +179,94 @@ def _json_default(obj: object) -> Any:
     if isinstance(obj, (np.generic, np.ndarray)):
         return obj.tolist()
     raise TypeError(f"{type(obj).__name__} is not JSON serializable")
+
+
+_RUN_HINT = (
+    " (a graph returned by a vesselflow run never has this: if a run returned it, "
+    "it is an internal error, please report it)"
+)
+"""Said with every refusal of a graph that is not read from a file."""
+
+
+def check_graph_arrays(
+    positions: ArrayLike,
+    radii: ArrayLike,
+    edges: ArrayLike,
+    spacing: ArrayLike = (1.0, 1.0, 1.0),
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]]:
+    """The one rule for a valid graph, applied by the :class:`VesselGraph` constructor,
+    by :func:`vesselflow.load_graph` to every format it reads, and before every save.
+
+    ``positions`` is ``(N, 3)`` finite; ``radii`` is ``(N,)`` finite and ``>= 0``;
+    ``edges`` is ``(E, 2)`` of integer node ids in ``0..N-1`` (integer-valued floats
+    are accepted, other floats refused, never truncated) with no edge from a node to
+    itself; repeated edges are allowed. ``spacing`` is 3 finite numbers ``> 0``. Empty
+    arrays of any 1-D or 2-D shape with the right width stand for no nodes or no edges.
+
+    Returns the arrays as float64 and int64; raises ``ValueError`` naming the first
+    problem (array, index and value).
+    """
+    positions_ = _numbers("positions", positions, width=3)
+    n = len(positions_)
+    radii_ = _numbers("radii", radii, width=None)
+    spacing_ = _numbers("spacing", spacing, width=None)
+    if len(radii_) != n:
+        raise ValueError(f"{n} positions but {len(radii_)} radii")
+    if spacing_.shape != (3,) or not np.all(np.isfinite(spacing_) & (spacing_ > 0)):
+        raise ValueError(f"spacing {spacing_.tolist()} must be 3 finite numbers > 0")
+    bad = ~np.isfinite(positions_).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"positions[{i}] = {tuple(positions_[i].tolist())} is not finite")
+    bad = ~(np.isfinite(radii_) & (radii_ >= 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"radii[{i}] = {float(radii_[i])!r} is not a finite number >= 0")
+    return positions_, radii_, _edge_ids(edges, n), spacing_
+
+
+def _as_array(name: str, values: ArrayLike) -> NDArray[Any]:
+    try:
+        return np.asarray(values)
+    except (ValueError, TypeError, OverflowError, RecursionError) as e:
+        raise ValueError(f"{name} is not an array of numbers: {e}") from None
+
+
+def _numbers(name: str, values: ArrayLike, width: int | None) -> NDArray[np.float64]:
+    """``values`` as float64, ``(M, width)`` or ``(M,)`` when ``width`` is None."""
+    array = _as_array(name, values)
+    if array.size == 0 and array.ndim == 1:
+        return np.empty((0,) if width is None else (0, width))
+    if array.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be numbers, got {array.dtype} values")
+    shape_ok = array.ndim == 1 if width is None else array.ndim == 2 and array.shape[1] == width
+    if not shape_ok:
+        expected = "(N,)" if width is None else f"(N, {width})"
+        raise ValueError(f"{name} must have shape {expected}, got {array.shape}")
+    return array.astype(np.float64, copy=False)
+
+
+def _edge_ids(edges: ArrayLike, n: int) -> NDArray[np.int64]:
+    array = _as_array("edges", edges)
+    if array.size == 0 and (array.ndim == 1 or array.shape[1:] == (2,)):
+        return np.empty((0, 2), dtype=np.int64)
+    if array.ndim != 2 or array.shape[1] != 2:
+        raise ValueError(f"edges must have shape (E, 2), got {array.shape}")
+    if array.dtype.kind == "f":
+        bad = ~(np.isfinite(array) & (array == np.round(array)))
+        if bad.any():
+            e = int(np.argmax(bad.any(axis=1)))
+            raise ValueError(f"edges[{e}] = {tuple(array[e].tolist())} are not integer node ids")
+    elif array.dtype.kind not in "iu":
+        raise ValueError(f"edges must be integer node ids, got {array.dtype} values")
+    bad = ((array < 0) | (array >= n)).any(axis=1)
+    if bad.any():
+        e = int(np.argmax(bad))
+        pair = tuple(array[e].tolist())
+        raise ValueError(f"edges[{e}] = {pair} refers to a node outside 0..{n - 1}")
+    ids = array.astype(np.int64)
+    loops = ids[:, 0] == ids[:, 1]
+    if loops.any():
+        e = int(np.argmax(loops))
+        raise ValueError(f"edges[{e}] joins node {ids[e, 0]} to itself (self-loops are refused)")
+    return ids

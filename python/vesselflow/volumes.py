@@ -12,13 +12,15 @@ OME files as a rule; vesselflow keeps whatever unit the file uses).
 from __future__ import annotations
 
 import logging
+import math
 import os
 import xml.etree.ElementTree as ElementTree
+import zipfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import IO, Any, Callable
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import DTypeLike, NDArray
 
 from vesselflow.io import import_extra
 
@@ -28,8 +30,127 @@ Spacing = tuple[float, float, float]
 """Voxel size along array axes 0, 1, 2, in the file's physical units."""
 
 
-class _VolumeError(ValueError):
-    """A refusal whose message already names the file (not wrapped again)."""
+class VolumeError(ValueError):
+    """A volume file that cannot be used as a mask; the message names the file and the
+    problem (unreadable, not 3-D, not binary, ambiguous key, ...)."""
+
+
+GIB = 2**30
+
+_MEMORY_ADVICE = (
+    "free memory, crop or downsample the volume, or split it into blocks and run each "
+    "(a chunked run); if more memory is free than detected, pass max_memory= (bytes)"
+)
+
+
+class _Budget:
+    """The memory a volume may take: what a file declares is checked against it before
+    the data are read, and an allocation that fails anyway is reported with it."""
+
+    def __init__(self, path: Path, available: int | None) -> None:
+        self.path = path
+        self.available = available
+        self.declared = ""
+        self.refused = False
+
+    def check(self, shape: Any, dtype: DTypeLike, converted_itemsize: int = 0) -> None:
+        """Refuse (``MemoryError``) a ``shape`` x ``dtype`` array, plus a converted copy
+        of ``converted_itemsize`` bytes per voxel, if it does not fit: with the mask and
+        one boolean temporary, reading needs ``itemsize + converted + 2`` bytes a voxel."""
+        shape = tuple(int(d) for d in shape)
+        try:
+            dtype = np.dtype(dtype)
+        except TypeError:  # a library's own dtype object: count 8 bytes a voxel
+            dtype = np.dtype(np.float64)
+        voxels = math.prod(shape)
+        data = voxels * dtype.itemsize
+        needed = data + voxels * (converted_itemsize + 2)
+        self.declared = (
+            f"declares a {'x'.join(map(str, shape))} {dtype} volume ({_size(data)}); "
+            f"reading it as a mask needs about {_size(needed)}"
+        )
+        if self.available is not None and needed > self.available:
+            self.refused = True
+            raise MemoryError(
+                f"{self.path}: {self.declared}, {_size(max(self.available, 0))} available; "
+                f"{_MEMORY_ADVICE}"
+            )
+
+    def check_npy(self, f: IO[bytes]) -> None:
+        """:meth:`check` with the header of the ``.npy`` data in ``f``."""
+        version = np.lib.format.read_magic(f)
+        read_header = (
+            np.lib.format.read_array_header_1_0
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0
+        )
+        shape, _, dtype = read_header(f)
+        self.check(shape, dtype)
+
+    def out_of_memory(self, e: MemoryError) -> str:
+        """The message for a ``MemoryError`` raised while reading: never empty."""
+        if self.declared:
+            what = f"it {self.declared}"
+        else:
+            try:
+                what = f"the file holds {_size(self.path.stat().st_size)}"
+            except OSError:
+                what = "its size is unknown"
+        available = "" if self.available is None else f", {_size(self.available)} available"
+        detail = f" ({e})" if str(e) else ""
+        return (
+            f"{self.path}: ran out of memory reading the volume{detail}: {what}{available}; "
+            f"{_MEMORY_ADVICE}"
+        )
+
+
+def _size(n: int) -> str:
+    if n >= GIB // 10:
+        return f"{n / GIB:.1f} GiB"
+    return f"{n / 2**20:.1f} MiB" if n >= 2**20 // 10 else f"{n} bytes"
+
+
+def _available_memory() -> int | None:
+    """Bytes this process may still allocate, as far as the system tells: the least of
+    the available memory, the cgroup's limit minus its usage and the address-space limit
+    minus the process's size (Linux). None if none of them is known."""
+    bounds: list[int] = []
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    bounds.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    v2 = Path("/sys/fs/cgroup")
+    try:  # this process's cgroup (v2): the line "0::/its/path"
+        with open("/proc/self/cgroup", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("0::/"):
+                    v2 = v2 / line.strip()[4:]
+    except OSError:
+        pass
+    v1 = Path("/sys/fs/cgroup/memory")
+    for limit_file, usage_file in (
+        (v2 / "memory.max", v2 / "memory.current"),
+        (v1 / "memory.limit_in_bytes", v1 / "memory.usage_in_bytes"),
+    ):
+        try:
+            limit = limit_file.read_text().strip()
+            if limit != "max" and int(limit) < 2**60:  # v1 writes a huge number for none
+                bounds.append(int(limit) - int(usage_file.read_text()))
+        except (OSError, ValueError):
+            pass
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft != resource.RLIM_INFINITY:
+            with open("/proc/self/statm", encoding="ascii") as f:
+                bounds.append(soft - int(f.read().split()[0]) * resource.getpagesize())
+    except (ImportError, OSError, ValueError, IndexError):
+        pass
+    return min(bounds) if bounds else None
 
 
 def load_volume(
@@ -37,6 +158,7 @@ def load_volume(
     key: str | None = None,
     threshold: float | None = None,
     label: float | None = None,
+    max_memory: int | None = None,
 ) -> tuple[NDArray[np.bool_], Spacing]:
     """Read a 3-D mask and its voxel spacing (physical units per voxel, axes 0, 1, 2).
 
@@ -76,9 +198,16 @@ def load_volume(
     image) needs ``threshold`` (mask = data > threshold) or ``label`` (mask = data ==
     label), in the data's own values.
 
+    Before reading the data, the size the file declares (array shape and data type,
+    from its header) is checked against ``max_memory`` bytes, by default the memory
+    this process can still use (Linux: available memory, cgroup and address-space
+    limits; no check where these are unknown).
+
     Raises ``FileNotFoundError`` if ``path`` does not exist, ``ModuleNotFoundError``
-    naming the ``io`` extra if the format's library is not installed, and ``ValueError``
-    naming the file if it cannot be read as a 3-D volume of its format or is not binary.
+    naming the ``io`` extra if the format's library is not installed,
+    :class:`VolumeError` (a ``ValueError``) naming the file if it cannot be read as a
+    3-D volume of its format or is not binary, and ``MemoryError`` saying how much memory
+    the volume needs and how much there is.
     """
     path = Path(path)
     if threshold is not None and label is not None:
@@ -89,16 +218,22 @@ def load_volume(
         raise ValueError(f"{path}: unsupported volume extension (supported: {supported})")
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
+    budget = _Budget(path, _available_memory() if max_memory is None else max_memory)
     try:
-        data, spacing = reader(path, key)
-    except (FileNotFoundError, ModuleNotFoundError, MemoryError, _VolumeError):
+        data, spacing = reader(path, key, budget)
+        data = np.asarray(data)
+        if data.ndim != 3:
+            raise VolumeError(f"{path}: expected a 3-D volume, got shape {data.shape}")
+        return _binarise(data, path, threshold, label), _check_spacing(spacing, path)
+    except (FileNotFoundError, ModuleNotFoundError, VolumeError):
         raise
+    except MemoryError as e:
+        if budget.refused:
+            raise
+        raise MemoryError(budget.out_of_memory(e)) from e
     except Exception as e:  # each library raises its own types for a corrupt file
-        raise ValueError(f"{path}: not a readable {_extension(path)} volume: {e}") from e
-    data = np.asarray(data)
-    if data.ndim != 3:
-        raise ValueError(f"{path}: expected a 3-D volume, got shape {data.shape}")
-    return _binarise(data, path, threshold, label), _check_spacing(spacing, path)
+        problem = str(e) if isinstance(e, ValueError) and str(e) else f"{type(e).__name__}: {e}"
+        raise VolumeError(f"{path}: not a readable {_extension(path)} volume: {problem}") from e
 
 
 def _extension(path: Path) -> str:
@@ -126,24 +261,24 @@ def _binarise(
             (lo == 0 or hi == 0) and np.count_nonzero(data == (hi or lo)) == np.count_nonzero(data)
         ):
             return np.asarray(data != 0)
-        raise _VolumeError(
+        raise VolumeError(
             f"{path}: not a binary mask: {data.dtype} values from {lo} to {hi} "
             f"with more than one non-zero value; {advice}"
         )
     if data.dtype.kind == "f":
         if np.all((data == 0) | (data == 1)):
             return np.asarray(data == 1)
-        raise _VolumeError(
+        raise VolumeError(
             f"{path}: not a binary mask: {data.dtype} values other than 0 and 1 "
             f"(from {np.nanmin(data)} to {np.nanmax(data)}); {advice}"
         )
-    raise _VolumeError(f"{path}: data of dtype {data.dtype} cannot be a mask")
+    raise VolumeError(f"{path}: data of dtype {data.dtype} cannot be a mask")
 
 
 def _check_spacing(spacing: Any, path: Path) -> Spacing:
     values = [abs(float(s)) for s in np.asarray(spacing, dtype=np.float64).reshape(-1)]
     if len(values) != 3:
-        raise _VolumeError(f"{path}: spacing {values} does not hold 3 numbers")
+        raise VolumeError(f"{path}: spacing {values} does not hold 3 numbers")
     for axis, s in enumerate(values):
         if not (np.isfinite(s) and s > 0):
             logger.warning("%s: spacing of axis %d is %s; using 1", path, axis, s)
@@ -160,35 +295,47 @@ def _drop_unit_axes(data: Any, spatial_first: bool) -> Any:
     return data
 
 
-def _read_npy(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_npy(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
+    with open(path, "rb") as f:
+        budget.check_npy(f)
     return np.load(path, allow_pickle=False), (1.0, 1.0, 1.0)
 
 
-def _read_npz(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_npz(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     with np.load(path, allow_pickle=False) as npz:
         names = [name for name in npz.files if name != "spacing"]
         if key is None:
             key = "mask" if "mask" in names else names[0] if len(names) == 1 else None
-        if key not in names:
-            raise _VolumeError(
+        if key is None or key not in names:
+            raise VolumeError(
                 f"{path}: choose the array with key= (arrays: {', '.join(npz.files)})"
             )
         spacing = npz["spacing"] if "spacing" in npz.files else (1.0, 1.0, 1.0)
+        with zipfile.ZipFile(path) as archive:
+            member = f"{key}.npy" if f"{key}.npy" in archive.namelist() else key
+            with archive.open(member) as f:
+                budget.check_npy(f)
         return npz[key], spacing
 
 
-def _read_nifti(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_nifti(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     nib = import_extra("nibabel", "io")
-    image = nib.load(path)
+    image = nib.load(path)  # the header only: the data are read below
+    scaled = getattr(image.dataobj, "slope", 1.0) != 1 or getattr(image.dataobj, "inter", 0) != 0
+    budget.check(image.header.get_data_shape(), image.get_data_dtype(), 8 if scaled else 0)
     data = _drop_unit_axes(np.asanyarray(image.dataobj), spatial_first=True)
     # Zooms are float32: read 0.3 back as the decimal that was meant, as the binary does.
     return data, [float(str(zoom)) for zoom in image.header.get_zooms()[:3]]
 
 
-def _read_tiff(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_tiff(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     tifffile = import_extra("tifffile", "io")
     with tifffile.TiffFile(path) as tif:
-        data = _drop_unit_axes(tif.series[0].asarray(), spatial_first=False)
+        if not tif.series:
+            raise ValueError("no image series in the file")
+        series = tif.series[0]
+        budget.check(series.shape, series.dtype)
+        data = _drop_unit_axes(series.asarray(), spatial_first=False)
         spacing = [1.0, 1.0, 1.0]
         if tif.is_imagej and tif.imagej_metadata:
             page = tif.pages[0]
@@ -210,7 +357,7 @@ def _ome_tiff_spacing(ome_xml: str) -> list[float]:
     return [1.0, 1.0, 1.0]
 
 
-def _read_zarr(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_zarr(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     zarr = import_extra("zarr", "io")
     node = zarr.open(str(path), mode="r")
     if not hasattr(node, "shape"):  # a group: OME-Zarr (0.4 in attributes, 0.5 under "ome")
@@ -218,55 +365,67 @@ def _read_zarr(path: Path, key: str | None) -> tuple[Any, Any]:
         multiscales = attrs.get("multiscales") or attrs.get("ome", {}).get("multiscales")
         if not multiscales:
             if key is None:
-                raise _VolumeError(f"{path}: a Zarr group without OME metadata: pass key=")
-            return _zarr_array(node[key], path), (1.0, 1.0, 1.0)
+                raise VolumeError(f"{path}: a Zarr group without OME metadata: pass key=")
+            return _zarr_array(node[key], budget), (1.0, 1.0, 1.0)
         datasets = multiscales[0]["datasets"]
         paths = [d["path"] for d in datasets]
         if key is not None and key not in paths:
-            raise _VolumeError(f"{path}: no dataset {key!r} (datasets: {', '.join(paths)})")
+            raise VolumeError(f"{path}: no dataset {key!r} (datasets: {', '.join(paths)})")
         dataset = datasets[0 if key is None else paths.index(key)]
         spacing = np.ones(len(multiscales[0].get("axes", [])) or 3)
         for transform in dataset.get("coordinateTransformations", []):
             if transform.get("type") == "scale":
                 spacing = np.asarray(transform["scale"], dtype=np.float64)
-        array = _zarr_array(node[dataset["path"]], path)
+        array = _zarr_array(node[dataset["path"]], budget)
         return _drop_unit_axes(array, spatial_first=False), spacing[-3:]
-    return _zarr_array(node, path), (1.0, 1.0, 1.0)
+    return _zarr_array(node, budget), (1.0, 1.0, 1.0)
 
 
-def _zarr_array(array: Any, path: Path) -> Any:
+def _zarr_array(array: Any, budget: _Budget) -> Any:
+    budget.check(array.shape, array.dtype)
     return _drop_unit_axes(np.asarray(array[...]), spatial_first=False)
 
 
-def _read_hdf5(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_hdf5(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     h5py = import_extra("h5py", "io")
     with h5py.File(path, "r") as f:
         if key is None:
             names: list[str] = []
             f.visititems(lambda name, obj: names.append(name) if hasattr(obj, "shape") else None)
             if len(names) != 1:
-                raise _VolumeError(
+                raise VolumeError(
                     f"{path}: choose the dataset with key= (datasets: {', '.join(names)})"
                 )
             key = names[0]
         if key not in f:
-            raise _VolumeError(f"{path}: no dataset {key!r}")
+            raise VolumeError(f"{path}: no dataset {key!r}")
         dataset = f[key]
         spacing: Any = (1.0, 1.0, 1.0)
         for attr in ("element_size_um", "spacing"):
             if attr in dataset.attrs:
                 spacing = dataset.attrs[attr]
                 break
+        budget.check(dataset.shape, dataset.dtype)
         return dataset[...], spacing
 
 
-def _read_sitk(path: Path, key: str | None) -> tuple[Any, Any]:
+def _read_sitk(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     sitk = import_extra("SimpleITK", "io")
+    info = sitk.ImageFileReader()
+    info.SetFileName(str(path))
+    info.ReadImageInformation()  # the header only
+    components = info.GetNumberOfComponents()
+    shape = (*reversed(info.GetSize()), *([components] if components > 1 else []))
+    budget.check(shape, _SITK_DTYPES.get(info.GetPixelIDValue(), "float64"))
     image = sitk.ReadImage(str(path))
     return sitk.GetArrayFromImage(image), tuple(reversed(image.GetSpacing()))
 
 
-_READERS: dict[str, Callable[[Path, str | None], tuple[Any, Any]]] = {
+_SITK_DTYPES = dict(enumerate(["int8", "uint8", "int16", "uint16", "int32", "uint32"]))
+_SITK_DTYPES.update({6: "int64", 7: "uint64", 8: "float32", 9: "float64"})
+"""SimpleITK's scalar pixel ids (sitkInt8 = 0 ... sitkFloat64 = 9); others count as 8 bytes."""
+
+_READERS: dict[str, Callable[[Path, str | None, _Budget], tuple[Any, Any]]] = {
     ".npy": _read_npy,
     ".npz": _read_npz,
     ".nii": _read_nifti,
@@ -281,4 +440,4 @@ _READERS: dict[str, Callable[[Path, str | None], tuple[Any, Any]]] = {
     ".nrrd": _read_sitk,
 }
 
-__all__ = ["Spacing", "load_volume"]
+__all__ = ["Spacing", "VolumeError", "load_volume"]

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from graph_files import assert_same_graph
+
 from vesselflow import VesselGraph, load_graph
 from vesselflow.io import csv_edges_path
 
@@ -24,24 +26,6 @@ def looped() -> VesselGraph:
     radii[2] = 5.0  # root of the first component
     edges = [[0, 1], [1, 2], [2, 3], [3, 0], [0, 2], [3, 4], [5, 6], [6, 7], [6, 7]]
     return VesselGraph(positions, radii, edges, spacing=(2.5, 0.5, 0.75))
-
-
-def canonical(graph: VesselGraph) -> tuple[np.ndarray, np.ndarray, Counter[tuple[int, int]]]:
-    """Positions and radii sorted by position, and the multiset of edges in that order:
-    equal for two graphs that differ only in node numbering and edge order."""
-    order = np.lexsort(graph.positions.T[::-1])
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    edges = Counter(tuple(sorted(pair)) for pair in rank[graph.edges].tolist())
-    return graph.positions[order], graph.radii[order], edges
-
-
-def assert_same_graph(a: VesselGraph, b: VesselGraph) -> None:
-    pa, ra, ea = canonical(a)
-    pb, rb, eb = canonical(b)
-    np.testing.assert_array_equal(pa, pb)
-    np.testing.assert_array_equal(ra, rb)
-    assert ea == eb
 
 
 @pytest.mark.parametrize("ext", [".swc", ".csv", ".vtp"])

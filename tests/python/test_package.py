@@ -15,6 +15,7 @@ def test_public_names():
     assert set(vesselflow.__all__) == {
         "Skeletonizer",
         "VesselGraph",
+        "VolumeError",
         "__version__",
         "load_graph",
         "load_volume",
