@@ -29,13 +29,33 @@ pub enum IoError {
         path = .path.display()
     )]
     NotThreeD { path: PathBuf, shape: Vec<u64> },
-    /// The NIfTI header's voxel sizes are not finite and positive.
+    /// The NIfTI header's voxel sizes are not finite numbers whose magnitude lies in
+    /// `[1e-12, 1e12]` (the sign is ignored, as NIfTI readers do).
     #[error(
-        "cannot read {path}: voxel sizes pixdim[1..4] = {pixdim:?} must be finite and non-zero \
-         (pass the spacing explicitly instead)",
+        "cannot read {path}: voxel sizes pixdim[1..4] = {pixdim:?} must be finite numbers of \
+         magnitude 1e-12 to 1e12 (pass the spacing explicitly instead)",
         path = .path.display()
     )]
     BadPixdim { path: PathBuf, pixdim: [f32; 3] },
+    /// Reading the file would take more memory than the reader may use: the header
+    /// declares more data than the budget ([`crate::ReadLimits`]) allows. Nothing
+    /// of that size was allocated or inflated.
+    #[error(
+        "cannot read {path}: {declared} ({needed}) but only {allowed} may be used; \
+         free memory, raise the memory budget or crop the volume",
+        path = .path.display(),
+        needed = needed_text(*.needed),
+        allowed = crate::budget::human_bytes(*.allowed)
+    )]
+    TooLarge {
+        path: PathBuf,
+        /// What the file declares, e.g. "the header declares 512×512×4096 voxels".
+        declared: String,
+        /// Bytes the read would allocate (`u64::MAX` when that overflows 64 bits).
+        needed: u64,
+        /// The budget in bytes.
+        allowed: u64,
+    },
     /// The graph's extension is none of the writable ones.
     #[error(
         "cannot write {path}: unsupported graph format (use .graphml, .json or .npz)",
@@ -48,6 +68,15 @@ pub enum IoError {
     /// The arrays handed to the writer do not form a valid graph.
     #[error("cannot write {path}: invalid graph: {reason}", path = .path.display())]
     InvalidGraph { path: PathBuf, reason: String },
+}
+
+/// Bytes needed, where `u64::MAX` stands for "more than 64 bits can count".
+fn needed_text(needed: u64) -> String {
+    if needed == u64::MAX {
+        "more than 16 EiB".to_string()
+    } else {
+        crate::budget::human_bytes(needed)
+    }
 }
 
 /// A shape as NumPy prints it: `(3, 4, 5)`.

@@ -5,7 +5,10 @@
 //! and centreline graphs out ([`write_graph`]: `.graphml`, `.json`, `.npz`, in
 //! the `vesselflow-graph` format, version 1). Every failure is an [`IoError`]
 //! whose message names the file and the problem; nothing here panics on bad input,
-//! and no partial output file is ever left behind.
+//! and no partial output file is ever left behind. Readers take a memory budget
+//! ([`read_volume_limited`], [`ReadLimits`]; by default what [`budget::usable_memory`]
+//! says this process may still use, at most 64 GiB) and refuse a file that
+//! declares more ([`IoError::TooLarge`]) before allocating or inflating it.
 //!
 //! ```no_run
 //! use std::path::Path;
@@ -19,6 +22,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod budget;
 mod error;
 mod graph;
 mod volume;
@@ -30,4 +34,4 @@ pub use graph::{
 };
 /// The JSON library of [`GraphArrays`]' metadata, so callers need no dependency of their own.
 pub use serde_json;
-pub use volume::{read_volume, read_volume_with_spacing, VolumeFile};
+pub use volume::{read_volume, read_volume_limited, read_volume_with_spacing, ReadLimits, VolumeFile};

@@ -2,6 +2,9 @@
 //! nifti crate's writer, hand-built headers): values, axis order, spacing, and
 //! a clear refusal of everything that is not a 3-D binary mask.
 
+mod common;
+
+use common::npy_bytes;
 use ndarray::{Array, Array2, Array3, Array4, ShapeBuilder};
 use ndarray_npy::WriteNpyExt;
 use std::fs::{self, File};
@@ -69,22 +72,6 @@ fn npy_bool_and_every_integer_dtype_in_c_and_fortran_order() {
     npy_round_trip(&dir, "i32", 0i32, [-70_000, 3, i32::MIN]);
     npy_round_trip(&dir, "u64", 0u64, [1, 1 << 40, u64::MAX]);
     npy_round_trip(&dir, "i64", 0i64, [-(1 << 40), 9, i64::MIN]);
-}
-
-/// A version-1.0 `.npy` file from parts (`descr` and `shape` as Python literals),
-/// padded as NumPy pads it.
-fn npy_bytes(descr: &str, fortran: bool, shape: &str, data: &[u8]) -> Vec<u8> {
-    let order = if fortran { "True" } else { "False" };
-    let mut dict = format!("{{'descr': {descr}, 'fortran_order': {order}, 'shape': {shape}, }}");
-    while (10 + dict.len() + 1) % 64 != 0 {
-        dict.push(' ');
-    }
-    dict.push('\n');
-    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-    bytes.extend_from_slice(&(dict.len() as u16).to_le_bytes());
-    bytes.extend_from_slice(dict.as_bytes());
-    bytes.extend_from_slice(data);
-    bytes
 }
 
 #[test]
