@@ -10,8 +10,9 @@ and runs, each in its own subprocess so that each peak RSS is its own:
 - ``vesselflow.skeletonize(mask, spacing, threads=N)`` once per ``--threads`` count:
   per-stage seconds from ``info["stage_seconds"]``, per-stage peak memory (from its
   progress callback, which resets the high-water mark after every stage), contraction and
-  refinement iterations, nodes and edges, and a SHA-256 of the output arrays (the thread
-  counts must give identical outputs);
+  refinement iterations, nodes and edges, a SHA-256 of the output arrays (the thread
+  counts must give identical outputs), and the ``max_memory`` guard's estimate of the
+  peak (``vesselflow._core.memory_estimate``, set against the measured one);
 - ``edt.edt(mask, anisotropy=spacing, black_border=True, parallel=N)``: the distance
   transform alone, a floor for any method that starts with one;
 - scikit-image ``skeletonize`` + ``skan.Skeleton``: voxel thinning and its branch graph
@@ -239,6 +240,11 @@ def child(tool: str, mask_path: str, spacing: tuple[float, float, float], thread
     # call's peak is the largest stage peak (those are already over the baseline).
     stage_peaks = result.get("stage_peak_bytes", {}) if isinstance(result, dict) else {}
     peak = max([peak, *(baseline + v for v in stage_peaks.values())])
+    if tool == "vesselflow":
+        # The `max_memory` guard's estimate of the same figure (peak over the mask).
+        from vesselflow import _core
+
+        result["estimate_bytes"] = _core.memory_estimate(data.shape, foreground, threads=threads)
     print(
         json.dumps(
             {
@@ -367,11 +373,14 @@ def table(rows: list[Row]) -> list[str]:
 
 
 def stage_memory(rows: list[Row]) -> list[str]:
-    """vesselflow's peak RSS over the mask during each stage."""
+    """vesselflow's peak RSS over the mask during each stage, and the `max_memory`
+    guard's estimate of the largest of them (``vesselflow._core.memory_estimate``)."""
     stages = ("edt", "grid", "contract", "refine", "output")
     out = [
-        "| volume | threads | " + " | ".join(f"{s} (MiB, B/fg)" for s in stages) + " |",
-        "|---|---:|" + "---:|" * len(stages),
+        "| volume | threads | "
+        + " | ".join(f"{s} (MiB, B/fg)" for s in stages)
+        + " | estimate (MiB) | estimate ÷ peak |",
+        "|---|---:|" + "---:|" * (len(stages) + 2),
     ]
     for volume, tool, threads, rep in rows:
         if tool != "vesselflow" or rep["status"] != "ok":
@@ -380,6 +389,9 @@ def stage_memory(rows: list[Row]) -> list[str]:
         cells = [
             f"{peaks[s] / 2**20:.0f}, {peaks[s] / fg:.0f}" if s in peaks else "-" for s in stages
         ]
+        estimate, peak = rep["result"].get("estimate_bytes"), max(peaks.values(), default=0)
+        cells.append(f"{estimate / 2**20:.0f}" if estimate else "-")
+        cells.append(f"{estimate / peak:.2f}" if estimate and peak else "-")
         out.append(f"| {volume} | {threads} | " + " | ".join(cells) + " |")
     return out
 

@@ -194,13 +194,13 @@ fn stages(cr: &mut Criterion) {
     for (n, mask, fg) in &volumes {
         group.throughput(Throughput::Elements(*fg));
         group.bench_with_input(BenchmarkId::new("edt", n), mask, |b, m| {
-            b.iter(|| volume::edt_squared(m.view(), SPACING))
+            b.iter(|| volume::edt_squared(m.view(), SPACING).unwrap())
         });
-        let edt = volume::edt_squared(mask.view(), SPACING);
+        let edt = volume::edt_squared(mask.view(), SPACING).unwrap();
         group.bench_with_input(BenchmarkId::new("grid", n), mask, |b, m| {
-            b.iter(|| grid::build(m.view(), &edt, SPACING, &p))
+            b.iter(|| grid::build(m.view(), &edt, SPACING, &p).unwrap())
         });
-        let grid = grid::build(mask.view(), &edt, SPACING, &p);
+        let grid = grid::build(mask.view(), &edt, SPACING, &p).unwrap();
         let g =
             NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
         group.bench_with_input(BenchmarkId::new("contract", n), &g, |b, g| b.iter(|| contract_once(g, &p)));

@@ -36,6 +36,10 @@ fn forest(g: &Csr) -> Forest {
         parent[root] = root as u32;
         queue.push_back(root);
         while let Some(a) = queue.pop_front() {
+            // A run asked to stop ([`crate::cancel`]) gets a partial forest, which it discards.
+            if a % 65536 == 0 && crate::cancel::requested() {
+                return Forest { parent };
+            }
             for &b in g.neighbours(a) {
                 if parent[b as usize] == u32::MAX {
                     parent[b as usize] = a as u32;
@@ -210,6 +214,10 @@ fn map_short_cycles<R: Send>(g: &Csr, max_nodes: usize, f: impl Fn(&[u32]) -> R 
         .map(|edges| {
             scratch.with(|s| {
                 let mut out = Vec::new();
+                // A run asked to stop gets a partial result, which it discards.
+                if crate::cancel::requested() {
+                    return out;
+                }
                 for &(u, v) in edges {
                     if s.shortest_cycle_through(g, u, v, max_nodes) {
                         out.push(f(&s.path));
@@ -317,8 +325,8 @@ mod tests {
         // A 6-connected 4 x 5 x 6 block: one unit square per closing edge, many
         // searches per worker (the reused visit stamps must not leak between them).
         let mask = ndarray::Array3::<u8>::ones((4, 5, 6));
-        let e = crate::volume::edt_squared(mask.view(), [1.0; 3]);
-        let g = crate::grid::build(mask.view(), &e, [1.0; 3], &crate::params::Params::default());
+        let e = crate::volume::edt_squared(mask.view(), [1.0; 3]).unwrap();
+        let g = crate::grid::build(mask.view(), &e, [1.0; 3], &crate::params::Params::default()).unwrap();
         let c = short_cycles(&g.graph, &g.positions, 10);
         assert_eq!(c.len(), g.graph.edges() - g.graph.nodes() + 1);
         assert!(c.iter().all(|c| c.nodes.len() == 4 && (c.area - 1.0).abs() < 1e-12));

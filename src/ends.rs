@@ -9,6 +9,7 @@
 //! stays. The search along the line is capped at `3 r + 4 c`.
 
 use crate::grid::Csr;
+use crate::inside::voxel_of;
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -17,17 +18,8 @@ use rayon::prelude::*;
 const STEPS_PER_CELL: f64 = 4.0;
 
 fn inside<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], spacing: [f64; 3]) -> bool {
-    let dim = mask.dim();
-    let n = [dim.0, dim.1, dim.2];
-    let mut idx = [0usize; 3];
-    for d in 0..3 {
-        let v = (p[d] / spacing[d]).round();
-        if !(v >= 0.0 && v < n[d] as f64) {
-            return false;
-        }
-        idx[d] = v as usize;
-    }
-    mask[idx].is_set()
+    let (n0, n1, n2) = mask.dim();
+    voxel_of(p, spacing, [n0, n1, n2]).is_some_and(|v| mask[v].is_set())
 }
 
 /// The unit direction from the node `reach` back along the branch to end `i`.

@@ -3,8 +3,10 @@
 //! face neighbours (or 18/26), thin-vessel reconnection, and a final bridge so that
 //! every 26-connected mask component is exactly one graph component.
 
+use crate::error::Result;
+use crate::memory::{try_filled, try_with_capacity};
 use crate::params::{Connectivity, Params};
-use crate::volume::Voxel;
+use crate::volume::{foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
@@ -163,25 +165,32 @@ struct Rows {
 }
 
 impl Rows {
-    fn new<T: Voxel>(mask: ArrayView3<'_, T>) -> Rows {
+    fn new<T: Voxel>(mask: ArrayView3<'_, T>) -> Result<Rows> {
         let (n0, n1, n2) = mask.dim();
-        let per_row: Vec<Vec<u32>> = (0..n0 * n1)
-            .into_par_iter()
-            .map(|r| {
-                let row = mask.index_axis(Axis(0), r / n1);
-                let row = row.index_axis(Axis(0), r % n1);
-                row.iter().enumerate().filter(|(_, v)| v.is_set()).map(|(k, _)| k as u32).collect()
-            })
-            .collect();
-        let mut rows = Vec::with_capacity(n0 * n1 + 1);
-        rows.push(0);
-        let mut acc = 0;
-        for r in &per_row {
-            acc += r.len();
-            rows.push(acc);
+        let rows = foreground_rows(mask)?;
+        let mut ks = crate::memory::try_filled(rows[n0 * n1], 0u32)?;
+        // Blocks of rows in parallel, each filling its own part of `ks`.
+        let blocks: Vec<usize> = (0..=n0 * n1).step_by(ROW_BLOCK).chain([n0 * n1]).collect();
+        let mut parts = Vec::with_capacity(blocks.len());
+        let mut rest = &mut ks[..];
+        for w in blocks.windows(2) {
+            let (head, tail) = rest.split_at_mut(rows[w[1]] - rows[w[0]]);
+            parts.push((w[0]..w[1], head));
+            rest = tail;
         }
-        let ks = per_row.concat();
-        Rows { shape: [n0, n1, n2], rows, ks }
+        parts.into_par_iter().for_each(|(block, part)| {
+            let mut t = 0;
+            for r in block {
+                let row = mask.index_axis(Axis(0), r / n1);
+                for (k, v) in row.index_axis(Axis(0), r % n1).iter().enumerate() {
+                    if v.is_set() {
+                        part[t] = k as u32;
+                        t += 1;
+                    }
+                }
+            }
+        });
+        Ok(Rows { shape: [n0, n1, n2], rows, ks })
     }
 
     fn len(&self) -> usize {
@@ -236,17 +245,26 @@ fn offsets(max_sq: isize) -> Vec<[isize; 3]> {
 /// is applied symmetrically. Finally, voxels that touch only by an edge or a corner
 /// still unjoined get one bridging edge per pair of graph pieces, so that each
 /// 26-connected mask component is exactly one graph component.
-pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3], params: &Params) -> GridGraph {
-    let rows = Rows::new(mask);
+///
+/// `edt_sq` is the squared EDT at the foreground voxels in C order
+/// ([`crate::volume::edt_squared`]). [`crate::Error::OutOfMemory`] if one of its
+/// node-sized arrays cannot be allocated.
+pub fn build<T: Voxel>(
+    mask: ArrayView3<'_, T>,
+    edt_sq: &[f32],
+    spacing: [f64; 3],
+    params: &Params,
+) -> Result<GridGraph> {
+    let rows = Rows::new(mask)?;
     let n = rows.len();
-    let [_, n1, n2] = rows.shape;
     let base_sq = match params.connectivity {
         Connectivity::Six => 1,
         Connectivity::Eighteen => 2,
         Connectivity::TwentySix => 3,
     };
     let base = offsets(base_sq);
-    let node_rows: Vec<usize> = rows.nodes().map(|(r, _)| r).collect();
+    let mut node_rows: Vec<usize> = try_with_capacity(n)?;
+    node_rows.extend(rows.nodes().map(|(r, _)| r));
     let lookup = |a: usize, o: &[isize; 3]| {
         let [i, j, k] = rows.voxel(node_rows[a], a);
         rows.find(i + o[0], j + o[1], k + o[2])
@@ -255,14 +273,22 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
     // Base neighbours of every node, one slot per offset (in increasing node order),
     // `u32::MAX` where the voxel is background.
     let f = base.len();
-    let mut near = vec![u32::MAX; n * f];
+    let mut near = try_filled(n * f, u32::MAX)?;
     near.par_chunks_mut(f * ROW_BLOCK).enumerate().for_each(|(c, part)| {
+        // A run asked to stop gets a partial graph, which it discards.
+        if crate::cancel::requested() {
+            return;
+        }
         for (t, slots) in part.chunks_mut(f).enumerate() {
             for (slot, o) in slots.iter_mut().zip(&base) {
                 *slot = lookup(c * ROW_BLOCK + t, o).unwrap_or(u32::MAX);
             }
         }
     });
+    // A run asked to stop ([`crate::cancel`]) ends at the next of these checks.
+    if crate::cancel::requested() {
+        return Err(crate::error::Error::Interrupted);
+    }
     let degree: Vec<usize> = near.par_chunks(f).map(|s| s.iter().filter(|&&b| b != u32::MAX).count()).collect();
     // Thin-vessel reconnection: the edge-diagonal neighbours of every node of degree
     // ≤ 2, both ways (the rule joins a pair when either end is thin), sorted.
@@ -281,6 +307,9 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         extra.par_sort_unstable();
         extra.dedup();
     }
+    if crate::cancel::requested() {
+        return Err(crate::error::Error::Interrupted);
+    }
     let mut counts = degree;
     for &(a, _) in &extra {
         counts[a as usize] += 1;
@@ -293,7 +322,7 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         offs.push(acc);
     }
     drop(counts);
-    let mut targets = vec![0u32; acc];
+    let mut targets = try_filled(acc, 0u32)?;
     for_row_blocks(&offs, &mut targets, |block, out| {
         // Each row: its base neighbours merged with its extra ones, both sorted.
         let mut x = extra.partition_point(|&(a, _)| (a as usize) < block.start);
@@ -320,6 +349,9 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         }
     });
     drop((near, extra));
+    if crate::cancel::requested() {
+        return Err(crate::error::Error::Interrupted);
+    }
     let mut graph = Csr { offsets: offs, targets };
 
     // Bridge graph pieces that touch only diagonally. Candidates: 26-neighbour pairs
@@ -364,6 +396,9 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
         edges.sort_unstable();
         graph = Csr::from_sorted_edges(n, &edges);
     }
+    if crate::cancel::requested() {
+        return Err(crate::error::Error::Interrupted);
+    }
     // Components numbered by their first node.
     let mut label = vec![u32::MAX; n];
     let mut label_of_root = vec![u32::MAX; n];
@@ -379,21 +414,15 @@ pub fn build<T: Voxel>(mask: ArrayView3<'_, T>, edt_sq: &[f32], spacing: [f64; 3
     drop(label_of_root);
 
     let voxel = |node: usize| rows.voxel(node_rows[node], node);
-    let positions = (0..n)
-        .into_par_iter()
-        .map(|node| {
-            let v = voxel(node);
-            std::array::from_fn(|d| v[d] as f64 * spacing[d])
-        })
-        .collect();
-    let radii = (0..n)
-        .into_par_iter()
-        .map(|node| {
-            let v = voxel(node);
-            (edt_sq[(v[0] as usize * n1 + v[1] as usize) * n2 + v[2] as usize] as f64).sqrt()
-        })
-        .collect();
-    GridGraph { graph, positions, radii, component: label, components: components as usize }
+    let mut positions = try_with_capacity(n)?;
+    positions.par_extend((0..n).into_par_iter().map(|node| {
+        let v = voxel(node);
+        std::array::from_fn(|d| v[d] as f64 * spacing[d])
+    }));
+    assert_eq!(edt_sq.len(), n, "the EDT of another mask");
+    let mut radii = try_with_capacity(n)?;
+    radii.par_extend(edt_sq.par_iter().map(|&d| (d as f64).sqrt()));
+    Ok(GridGraph { graph, positions, radii, component: label, components: components as usize })
 }
 
 #[cfg(test)]
@@ -402,8 +431,8 @@ mod tests {
     use ndarray::Array3;
 
     fn grid(mask: &Array3<u8>, params: &Params) -> GridGraph {
-        let e = crate::volume::edt_squared(mask.view(), [1.0; 3]);
-        build(mask.view(), &e, [1.0; 3], params)
+        let e = crate::volume::edt_squared(mask.view(), [1.0; 3]).unwrap();
+        build(mask.view(), &e, [1.0; 3], params).unwrap()
     }
 
     /// A rayon call inside `PerThread::with` lets the thread steal another task of

@@ -18,7 +18,9 @@
 //! | [`inside`] | nodes on background voxels moved to the nearest vessel voxel | — |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
+//! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
+//! | [`memory`] | the run's peak memory estimated from the mask, the `max_memory` guard | — |
 //! | [`shapes`] | analytic test volumes and the built-in demo volume | — |
 //!
 //! Every stage is a pure function of (mask block, spacing, parameters) and every
@@ -34,6 +36,7 @@
 //! assert!(skel.degrees().iter().all(|&d| d <= 2)); // a path
 //! ```
 
+pub mod cancel;
 pub mod cycles;
 pub mod decimate;
 pub mod ends;
@@ -42,6 +45,7 @@ pub mod graph;
 pub mod grid;
 pub mod inside;
 pub mod laplacian;
+pub mod memory;
 pub mod params;
 pub mod pipeline;
 pub mod precondition;
@@ -49,6 +53,7 @@ pub mod shapes;
 pub mod solver;
 pub mod volume;
 
+pub use cancel::Stop;
 pub use error::{Error, Result};
 pub use graph::{RunInfo, Skeleton, StageTime};
 pub use params::{Params, Value};

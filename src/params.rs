@@ -142,6 +142,11 @@ pub struct Params {
     pub max_refine_iterations: usize,
     /// Worker threads; 0 = one per core. Output does not depend on it.
     pub threads: usize,
+    /// Refuse a run whose estimated peak memory ([`crate::memory`]) exceeds this many
+    /// bytes ([`crate::Error::OutOfMemory`]), before its heavy stages; `Some(0)` = no
+    /// limit. `None` (`"auto"`, the default): the front ends put in what the process
+    /// may still use; the core itself then applies no limit. Output does not depend on it.
+    pub max_memory: Option<u64>,
 }
 
 impl Default for Params {
@@ -167,6 +172,7 @@ impl Default for Params {
             refine_area: 50.0,
             max_refine_iterations: 100,
             threads: 0,
+            max_memory: None,
         }
     }
 }
@@ -217,7 +223,7 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 20] = [
+    pub const NAMES: [&'static str; 21] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
@@ -238,6 +244,7 @@ impl Params {
         "refine_area",
         "max_refine_iterations",
         "threads",
+        "max_memory",
     ];
 
     /// Assign one parameter by name, checking its type and range.
@@ -300,6 +307,20 @@ impl Params {
                 }
                 self.threads = t;
             }
+            "max_memory" => {
+                self.max_memory = match v {
+                    Value::Int(i) if *i >= 0 => Some(*i as u64),
+                    Value::Float(x) if x.is_finite() && *x >= 0.0 && *x < u64::MAX as f64 => Some(x.round() as u64),
+                    Value::Str(s) if s.eq_ignore_ascii_case("auto") => None,
+                    Value::Str(s) if crate::memory::parse_bytes(s).is_some() => crate::memory::parse_bytes(s),
+                    _ => {
+                        return Err(bad(
+                            name,
+                            format!("expected bytes >= 0 (e.g. 8000000000, '8GB', '512MiB'), 0 or 'auto', got {v}"),
+                        ))
+                    }
+                }
+            }
             _ => return Err(Error::UnknownParameter(name.to_string())),
         }
         if self.alpha == 0.0 && self.beta == 0.0 {
@@ -348,6 +369,10 @@ impl Params {
             ("refine_area", Value::Float(self.refine_area)),
             ("max_refine_iterations", Value::Int(self.max_refine_iterations as i64)),
             ("threads", Value::Int(self.threads as i64)),
+            (
+                "max_memory",
+                self.max_memory.map_or(Value::Str("auto".into()), |b| Value::Int(b.min(i64::MAX as u64) as i64)),
+            ),
         ]
     }
 }
@@ -381,6 +406,21 @@ mod tests {
         assert!(e.to_string().contains("`alpha`"), "{e}");
         let e = Params::from_pairs([("medial_weight", Value::Int(1))]).unwrap_err();
         assert!(e.to_string().contains("`medial_weight`"), "{e}");
+        for bad in [Value::Int(-1), Value::Str("8 parsecs".into()), Value::Bool(true), Value::Float(-1.0)] {
+            let e = Params::from_pairs([("max_memory", bad)]).unwrap_err();
+            assert!(e.to_string().contains("`max_memory`"), "{e}");
+        }
+    }
+
+    #[test]
+    fn max_memory_takes_bytes_with_units() {
+        let get = |v: Value| Params::from_pairs([("max_memory", v)]).unwrap().max_memory;
+        assert_eq!(get(Value::Str("8GB".into())), Some(8_000_000_000));
+        assert_eq!(get(Value::Str("512MiB".into())), Some(512 << 20));
+        assert_eq!(get(Value::Int(1000)), Some(1000));
+        assert_eq!(get(Value::Int(0)), Some(0));
+        assert_eq!(get(Value::Str("auto".into())), None);
+        assert_eq!(Params::default().max_memory, None);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! The Skeletonizer: EDT → grid graph → contraction (Algorithm 1) → refinement
 //! (§III-G) → output, with per-stage timings and a progress observer.
 
+use crate::cancel::{self, Stop};
 use crate::cycles::{refine_step, short_cycle_area};
 use crate::decimate::{decimate, NodeGraph, CELL_LIMIT};
 use crate::ends::extend_ends;
@@ -9,10 +10,11 @@ use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled};
 use crate::inside::keep_inside;
 use crate::laplacian;
+use crate::memory;
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
 use crate::solver::{self, NormalOperator, SolveStats};
-use crate::volume::{check_spacing, edt_squared, Voxel};
+use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
 use ndarray::ArrayView3;
 use rayon::prelude::*;
 use std::time::Instant;
@@ -62,10 +64,23 @@ fn report(
     nodes: usize,
     measure: f64,
 ) -> Result<()> {
+    debug_panic(stage);
     if observer(&Progress { stage, iteration, nodes, measure }) {
         Ok(())
     } else {
         Err(Error::Interrupted)
+    }
+}
+
+/// Testing hook of the front ends' last line of defence: with the environment
+/// variable `VESSELFLOW_DEBUG_PANIC` set to a stage name (`edt`, `grid`, `contract`,
+/// ...), the run panics when it reports that stage, as a bug would. The command line
+/// and the Python module must turn this into an "internal error" (see
+/// [`crate::error::catch_panic`]).
+#[doc(hidden)]
+pub fn debug_panic(stage: &str) {
+    if std::env::var_os("VESSELFLOW_DEBUG_PANIC").is_some_and(|s| s == stage) {
+        panic!("VESSELFLOW_DEBUG_PANIC: forced panic at stage `{stage}`");
     }
 }
 
@@ -82,16 +97,21 @@ pub fn contract_step(
     clock: &mut StageClock,
 ) -> Result<(NodeGraph, SolveStats)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
+    interrupted()?;
     let order = axes.map(|axes| clock.time("solve", || slab_order(&g.positions, c, axes)));
+    interrupted()?;
     // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
     // `M` itself, and the conjugate-gradient vectors are allocated after.
     let m = {
         let (ln, lm) = clock.time("laplacian", || {
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
+        interrupted()?;
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
         clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref()))
     };
+    // The assembly stops early too (a partial matrix).
+    interrupted()?;
     return_free_memory();
     let start = match &order {
         Some(order) => {
@@ -103,6 +123,8 @@ pub fn contract_step(
     let r = clock.time("solve", || m.displacement_rhs(&start));
     let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, p.cg_tol, p.cg_max_iterations));
     drop(m);
+    // The solve stops early when the run is asked to stop: its result is partial.
+    interrupted()?;
     return_free_memory();
     g.positions = match &order {
         Some(order) => clock.time("solve", || {
@@ -116,6 +138,15 @@ pub fn contract_step(
     };
     let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
     Ok((next, stats))
+}
+
+/// [`Error::Interrupted`] if the run this thread works for was asked to stop.
+fn interrupted() -> Result<()> {
+    if cancel::requested() {
+        Err(Error::Interrupted)
+    } else {
+        Ok(())
+    }
 }
 
 /// Hand the pages of freed memory back to the system. glibc keeps freed blocks below
@@ -151,8 +182,11 @@ impl Skeletonizer {
     /// voxel along axes 0, 1, 2). `observer` gets every [`Progress`] report and stops
     /// the run with [`Error::Interrupted`] by returning `false`.
     ///
-    /// An empty mask gives an empty graph; a mask that is foreground everywhere is
-    /// refused ([`Error::AllForeground`]).
+    /// An empty mask gives an empty graph. A mask that is foreground everywhere is a
+    /// solid block (voxels outside the array count as background) and gets its graph.
+    ///
+    /// `spacing` must lie in [[`MIN_SPACING`](crate::volume::MIN_SPACING), [`MAX_SPACING`](crate::volume::MAX_SPACING)] on every axis, and no
+    /// axis may span 2²⁰ or more base cells (`size * spacing / min(spacing)`).
     pub fn run<T: Voxel>(
         &self,
         mask: ArrayView3<'_, T>,
@@ -160,6 +194,20 @@ impl Skeletonizer {
         observer: &mut dyn FnMut(&Progress) -> bool,
     ) -> Result<Skeleton> {
         self.run_block(mask, [0; 3], spacing, observer)
+    }
+
+    /// [`Skeletonizer::run`] that also stops, with [`Error::Interrupted`], soon after
+    /// `stop` is requested from another thread or a signal handler: the long stages
+    /// poll it inside their loops (every conjugate-gradient iteration, every few
+    /// thousand rows), not only between stages.
+    pub fn run_with_stop<T: Voxel>(
+        &self,
+        mask: ArrayView3<'_, T>,
+        spacing: [f64; 3],
+        stop: &Stop,
+        observer: &mut dyn FnMut(&Progress) -> bool,
+    ) -> Result<Skeleton> {
+        self.run_block_with_stop(mask, [0; 3], spacing, stop, observer)
     }
 
     /// [`Skeletonizer::run`] on a block of a larger volume whose voxel `(0, 0, 0)` is
@@ -175,7 +223,21 @@ impl Skeletonizer {
         spacing: [f64; 3],
         observer: &mut dyn FnMut(&Progress) -> bool,
     ) -> Result<Skeleton> {
+        self.run_block_with_stop(mask, offset, spacing, &Stop::new(), observer)
+    }
+
+    /// [`Skeletonizer::run_block`] with a [`Stop`] flag, as in
+    /// [`Skeletonizer::run_with_stop`].
+    pub fn run_block_with_stop<T: Voxel>(
+        &self,
+        mask: ArrayView3<'_, T>,
+        offset: [i64; 3],
+        spacing: [f64; 3],
+        stop: &Stop,
+        observer: &mut dyn FnMut(&Progress) -> bool,
+    ) -> Result<Skeleton> {
         check_spacing(spacing)?;
+        check_shape(mask)?;
         let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
         let (n0, n1, n2) = mask.dim();
         for (d, n) in [n0, n1, n2].into_iter().enumerate() {
@@ -189,31 +251,44 @@ impl Skeletonizer {
             }
         }
         let axes = slab_axes([n0, n1, n2]);
+        let on_start = stop.clone();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(self.params.threads)
+            .start_handler(move |_| on_start.install_on_thread())
             .build()
             .map_err(|e| Error::ThreadPool { threads: self.params.threads, reason: e.to_string() })?;
         let p = &self.params;
         let mut clock = StageClock::default();
         let mut info = RunInfo::default();
 
-        let edt = clock.time("edt", || pool.install(|| edt_squared(mask, spacing)));
+        // Every stage may return early, with a partial result, once `stop` is
+        // requested: `stop.check()` follows each before its result is used.
+        stop.check()?;
+        // Count the foreground (one cheap pass), and refuse a run that would need more
+        // memory than `max_memory` before any heavy stage.
+        let edt = clock.time("edt", || -> Result<Vec<f32>> {
+            let starts = pool.install(|| foreground_rows(mask))?;
+            let shape = [n0, n1, n2];
+            let need = memory::estimate(shape, starts[n0 * n1], p.connectivity, pool.current_num_threads());
+            memory::check(need.peak(), p.max_memory.unwrap_or(0))?;
+            pool.install(|| edt_squared_rows(mask, &starts, spacing))
+        })?;
+        stop.check()?;
         report(observer, "edt", 0, 0, 0.0)?;
-        let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, p)));
+        let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, p)))?;
+        stop.check()?;
         drop(edt);
         let n = grid.positions.len();
         info.foreground_voxels = n;
         info.mask_components = grid.components;
         report(observer, "grid", 0, n, 0.0)?;
-        if n > 0 && n == n0 * n1 * n2 {
-            return Err(Error::AllForeground(n));
-        }
         let mut g =
             NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
 
         // Contraction (Algorithm 1).
         let area = |g: &NodeGraph| pool.install(|| short_cycle_area(&g.graph, &g.positions, p.max_cycle_nodes));
         let a0 = clock.time("cycles", || area(&g));
+        stop.check()?;
         info.area_reference = p.stop_ratio
             * match p.area_reference {
                 // Foreground volume in base cells, times c²: N c² when isotropic.
@@ -228,6 +303,7 @@ impl Skeletonizer {
             let (next, stats) = pool.install(|| contract_step(std::mem::take(&mut g), p, c, axes, &mut clock))?;
             g = next;
             a_t = clock.time("cycles", || area(&g));
+            stop.check()?;
             info.iterations += 1;
             info.cg_iterations.push(stats.iterations);
             info.cg_unconverged += usize::from(!stats.converged);
@@ -251,6 +327,7 @@ impl Skeletonizer {
         while info.refine_iterations < p.max_refine_iterations {
             let step = clock
                 .time("refine", || pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)));
+            stop.check()?;
             let Some((positions, moved, kept)) = step else {
                 info.refine_converged = true;
                 break;
@@ -267,6 +344,7 @@ impl Skeletonizer {
         if !info.refine_converged {
             info.refine_converged =
                 pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)).is_none();
+            stop.check()?;
         }
 
         let out = clock.time("output", || {
@@ -292,8 +370,96 @@ impl Skeletonizer {
                 info: RunInfo::default(),
             }
         });
+        stop.check()?;
+        check_skeleton(&out)?;
         report(observer, "output", 0, out.positions.len(), 0.0)?;
         info.stage_seconds = clock.0;
         Ok(Skeleton { info, ..out })
+    }
+}
+
+/// Refuse, before any work, a mask whose shape the stages cannot index: a voxel count
+/// that overflows, or more foreground voxels than 32-bit node ids can number. (Block
+/// offsets need no check: `|offset * spacing| <= 2⁶³ * 1e12` is finite.)
+fn check_shape<T: Voxel>(mask: ArrayView3<'_, T>) -> Result<()> {
+    let (n0, n1, n2) = mask.dim();
+    let voxels = n0.checked_mul(n1).and_then(|v| v.checked_mul(n2)).filter(|&v| v <= isize::MAX as usize);
+    let Some(voxels) = voxels else {
+        return Err(Error::InvalidMask(format!("shape {n0} x {n1} x {n2} has more voxels than can be addressed")));
+    };
+    // Node ids are `u32` (`u32::MAX` marks "none"). Counted only when it could matter.
+    if voxels >= u32::MAX as usize {
+        let foreground = mask.as_slice_memory_order().map_or_else(
+            || mask.iter().filter(|v| v.is_set()).count(),
+            |s| s.par_iter().filter(|v| v.is_set()).count(),
+        );
+        if foreground >= u32::MAX as usize {
+            return Err(Error::InvalidMask(format!(
+                "{foreground} foreground voxels; at most {} are supported",
+                u32::MAX - 1
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Check the output graph before it is returned: positions finite, radii finite and
+/// ≥ 0, one radius per node, edges between existing nodes and no self-loops. A
+/// failure is a bug of the method, reported as [`Error::Internal`] rather than
+/// returned as a silently wrong graph.
+pub fn check_skeleton(s: &Skeleton) -> Result<()> {
+    let n = s.positions.len();
+    let bad = |what: String| Err(Error::Internal(format!("the output graph {what}")));
+    if s.radii.len() != n {
+        return bad(format!("has {} radii for {n} nodes", s.radii.len()));
+    }
+    if let Some(i) = s.positions.iter().position(|q| !q.iter().all(|x| x.is_finite())) {
+        return bad(format!("has a non-finite position at node {i}: {:?}", s.positions[i]));
+    }
+    if let Some(i) = s.radii.iter().position(|r| !(r.is_finite() && *r >= 0.0)) {
+        return bad(format!("has an invalid radius at node {i}: {}", s.radii[i]));
+    }
+    if let Some(e) = s.edges.iter().find(|e| e[0] >= n || e[1] >= n || e[0] == e[1]) {
+        return bad(format!("has an edge {e:?} that is a self-loop or leaves the {n} nodes"));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn good() -> Skeleton {
+        Skeleton {
+            positions: vec![[0.0, 1.0, 2.0], [1.0, 1.0, 2.0], [2.0, 1.0, 2.0]],
+            radii: vec![0.5, 0.0, 1.0],
+            edges: vec![[0, 1], [1, 2]],
+            spacing: [1.0; 3],
+            info: RunInfo::default(),
+        }
+    }
+
+    #[test]
+    fn the_output_check_refuses_every_kind_of_broken_graph() {
+        assert_eq!(check_skeleton(&good()), Ok(()));
+        assert_eq!(check_skeleton(&Skeleton::default()), Ok(()));
+        type Break = Box<dyn Fn(&mut Skeleton)>;
+        let broken: Vec<(&str, Break)> = vec![
+            ("NaN position", Box::new(|s| s.positions[1][2] = f64::NAN)),
+            ("infinite position", Box::new(|s| s.positions[0][0] = f64::NEG_INFINITY)),
+            ("negative radius", Box::new(|s| s.radii[2] = -0.1)),
+            ("infinite radius", Box::new(|s| s.radii[0] = f64::INFINITY)),
+            ("NaN radius", Box::new(|s| s.radii[1] = f64::NAN)),
+            ("missing radius", Box::new(|s| s.radii.truncate(2))),
+            ("edge out of range", Box::new(|s| s.edges.push([1, 3]))),
+            ("self-loop", Box::new(|s| s.edges.push([2, 2]))),
+        ];
+        for (what, breaks) in broken {
+            let mut s = good();
+            breaks(&mut s);
+            let e = check_skeleton(&s).unwrap_err();
+            assert!(matches!(e, Error::Internal(_)), "{what}: {e}");
+            assert!(e.to_string().starts_with("internal error, please report: the output graph"), "{what}: {e}");
+        }
     }
 }

@@ -243,6 +243,10 @@ impl NormalMatrix {
             .map(|(b, diag)| {
                 scratch.with(|(slot, acc, stripe)| {
                     *stripe = Stripe::new();
+                    // A run asked to stop ([`crate::cancel`]) discards the matrix.
+                    if crate::cancel::requested() {
+                        return Stripe::new();
+                    }
                     for (t, d) in diag.iter_mut().enumerate() {
                         let j = (b << shift) + t;
                         let node = order.map_or(j, |o| o[j] as usize);

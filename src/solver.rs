@@ -117,9 +117,13 @@ pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations:
     let mut active = rz0.map(|x| x > 0.0);
     let (mut step, mut beta) = ([0.0; 3], [0.0; 3]);
     let mut iterations = 0;
-    while active.iter().any(|&a| a) && iterations < max_iterations {
+    // A run asked to stop ends the solve early ([`crate::cancel`]); its caller discards it.
+    while active.iter().any(|&a| a) && iterations < max_iterations && !crate::cancel::cg_iteration_stops() {
         iterations += 1;
         let [sh, su] = m.backward(&mut k, step, beta);
+        if crate::cancel::requested() {
+            break;
+        }
         let se = m.outer_product(&k.s);
         let pq: V3 = std::array::from_fn(|c| sh[c] + su[c] + se[c]);
         step = std::array::from_fn(|c| if active[c] && pq[c] > 0.0 { rz[c] / pq[c] } else { 0.0 });
@@ -728,8 +732,8 @@ mod harness {
         }
         // The first contraction iteration alone, solve timed.
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        let edt = volume::edt_squared(mask.view(), [1.0; 3]);
-        let g = grid::build(mask.view(), &edt, [1.0; 3], &p);
+        let edt = volume::edt_squared(mask.view(), [1.0; 3]).unwrap();
+        let g = grid::build(mask.view(), &edt, [1.0; 3], &p).unwrap();
         let g = NodeGraph { graph: g.graph, positions: g.positions, radii: g.radii, component: g.component };
         let mut clock = StageClock::default();
         let t = Instant::now();

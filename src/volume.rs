@@ -28,81 +28,193 @@ use crate::error::{Error, Result};
 use ndarray::{ArrayView3, Axis};
 use rayon::prelude::*;
 
-/// Check that `spacing` holds three finite, strictly positive numbers.
+/// Smallest supported voxel spacing, physical units. See [`MAX_SPACING`].
+pub const MIN_SPACING: f64 = 1e-12;
+
+/// Largest supported voxel spacing, physical units.
+///
+/// The range `[MIN_SPACING, MAX_SPACING]` is where no intermediate quantity overflows
+/// or underflows. The tightest is the EDT, which stores squared physical distances in
+/// `f32` (normal numbers from 1.2e-38 to 3.4e38): the smallest it stores is
+/// `min(spacing)² ≥ 1e-24`, and the largest is bounded because every axis spans fewer
+/// than 2²⁰ base cells (`c = min(spacing)`, the cell-key limit checked with the
+/// spacing), so a squared distance is below `3 (2²⁰ c)² ≤ 3.3e36`. Everything else is
+/// `f64` (positions, areas `∝ c²`, volumes `∝ c³ ≥ 1e-36`) or scale-free (the
+/// row-normalised Laplacian weights, hence the normal matrix). Outside this range
+/// radii became 0 or infinite, and above 1e154 the EDT's squares overflowed `f64`.
+pub const MAX_SPACING: f64 = 1e12;
+
+/// Check that `spacing` holds three finite numbers in [`MIN_SPACING`, `MAX_SPACING`].
 pub fn check_spacing(spacing: [f64; 3]) -> Result<()> {
-    if spacing.iter().all(|s| s.is_finite() && *s > 0.0) {
+    if spacing.iter().all(|s| s.is_finite() && (MIN_SPACING..=MAX_SPACING).contains(s)) {
         Ok(())
     } else {
         Err(Error::InvalidSpacing(spacing.to_vec()))
     }
 }
 
+/// Where the foreground voxels of `mask` sit, row by row: the foreground voxels of row
+/// `r = i * n1 + j` (the voxels `(i, j, ..)`) are nodes `starts[r]..starts[r + 1]`, in C
+/// order, so `starts[n0 * n1]` is the foreground count. One cheap pass over the mask
+/// (rows in parallel); 8 bytes per row of the box.
+pub fn foreground_rows<T: Voxel>(mask: ArrayView3<'_, T>) -> Result<Vec<usize>> {
+    let (n0, n1, _) = mask.dim();
+    let mut starts = crate::memory::try_with_capacity(n0 * n1 + 1)?;
+    starts.push(0);
+    starts.par_extend((0..n0 * n1).into_par_iter().map(|r| {
+        let row = mask.index_axis(Axis(0), r / n1);
+        row.index_axis(Axis(0), r % n1).iter().filter(|v| v.is_set()).count()
+    }));
+    for r in 1..starts.len() {
+        starts[r] += starts[r - 1];
+    }
+    Ok(starts)
+}
+
+/// `values` cut into the parts of consecutive rows, from their `starts` (as in
+/// [`foreground_rows`], `starts[0]` being where `values` begins).
+fn row_parts<'a, V>(mut values: &'a mut [V], starts: &[usize]) -> Vec<&'a mut [V]> {
+    starts
+        .windows(2)
+        .map(|w| {
+            let (head, tail) = std::mem::take(&mut values).split_at_mut(w[1] - w[0]);
+            values = tail;
+            head
+        })
+        .collect()
+}
+
 /// Squared anisotropic Euclidean distance transform of `mask`, in physical units²,
-/// stored in C order (`f32`; exact integers up to 2²⁴ voxel² on isotropic grids).
+/// at its foreground voxels only, in C (node) order (`f32`; exact integers up to 2²⁴
+/// voxel² on isotropic grids).
 ///
-/// For a foreground voxel the value is the squared distance from its centre to the
+/// The value of a foreground voxel is the squared distance from its centre to the
 /// nearest background voxel centre; voxels outside the array count as background
-/// (METHOD.md §1), so every foreground voxel gets a finite value ≥ `min(spacing)²`.
-/// Background voxels get 0.
+/// (METHOD.md §1), so every value is finite and ≥ `min(spacing)²`.
 ///
-/// Exact and linear-time: a binary scan along axis 0 (plane by plane, so every
-/// plane is processed in parallel and stays contiguous), then the lower envelope of
-/// parabolas (Felzenszwalb & Huttenlocher 2012) along axes 1 and 2 inside each
-/// contiguous axis-0 slab, slabs in parallel.
+/// Exact and linear-time: a binary scan along axis 0 (forward, then backward, plane
+/// by plane, each plane's rows in parallel), then, plane by plane (planes in
+/// parallel), the lower envelope of parabolas (Felzenszwalb & Huttenlocher 2012)
+/// along axes 1 and 2 in a plane-sized buffer. Memory follows the vessels: 4 bytes
+/// per foreground voxel, plus [`foreground_rows`] and a few planes of scratch, never an
+/// array the size of the box. [`Error::OutOfMemory`] if an array cannot be
+/// allocated; [`edt_squared_rows`] takes rows already counted.
 ///
 /// ```
 /// use vesselflow::volume::edt_squared;
-/// let mut m = ndarray::Array3::<u8>::zeros((1, 1, 5));
-/// m.fill(1);
-/// let d = edt_squared(m.view(), [1.0, 1.0, 2.0]);
-/// // axis 0 and 1 have one voxel: background sits 1.0 away along them.
+/// let mut m = ndarray::Array3::<u8>::zeros((1, 2, 5));
+/// m.slice_mut(ndarray::s![0, 0, ..]).fill(1);
+/// let d = edt_squared(m.view(), [1.0, 1.0, 2.0]).unwrap();
+/// // Only the 5 foreground voxels; axes 0 and 1 put background 1.0 away.
 /// assert_eq!(d, vec![1.0; 5]);
 /// ```
-pub fn edt_squared<T: Voxel>(mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Vec<f32> {
+pub fn edt_squared<T: Voxel>(mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Result<Vec<f32>> {
+    edt_squared_rows(mask, &foreground_rows(mask)?, spacing)
+}
+
+/// [`edt_squared`] given the mask's [`foreground_rows`]; [`Error::OutOfMemory`] if
+/// an array cannot be allocated.
+pub fn edt_squared_rows<T: Voxel>(mask: ArrayView3<'_, T>, starts: &[usize], spacing: [f64; 3]) -> Result<Vec<f32>> {
     let (n0, n1, n2) = mask.dim();
-    let plane = n1 * n2;
-    let mut out = vec![0f32; n0 * plane];
+    assert_eq!(starts.len(), n0 * n1 + 1, "foreground rows of another mask");
+    let mut out = crate::memory::try_filled(starts[n0 * n1], 0f32)?;
     if out.is_empty() {
-        return out;
+        return Ok(out);
     }
-    // Axis 0: run lengths to the previous background plane (forward) then to the
-    // next one (backward), counting the virtual planes -1 and n0 as background.
-    let mut next = vec![0u32; plane];
-    let mut fwd = vec![0u32; plane];
+    let plane = n1 * n2;
+    let plane_starts = |i: usize| &starts[i * n1..=(i + 1) * n1];
+    // Axis 0: run lengths to the previous background plane (forward, kept at the
+    // foreground voxels) then to the next one (backward), counting the virtual planes
+    // -1 and n0 as background; a plane of counters carries each scan.
+    let mut run = crate::memory::try_filled(plane, 0u32)?;
     for i in 0..n0 {
+        // A run asked to stop ([`crate::cancel`]) ends here.
+        if crate::cancel::requested() {
+            return Err(Error::Interrupted);
+        }
         let slice = mask.index_axis(Axis(0), i);
-        fwd.par_chunks_mut(n2).enumerate().for_each(|(j, f)| {
+        let rows = plane_starts(i);
+        let parts = row_parts(&mut out[rows[0]..rows[n1]], rows);
+        run.par_chunks_mut(n2).zip(parts).enumerate().for_each(|(j, (f, o))| {
+            let mut t = 0;
             for (fk, &v) in f.iter_mut().zip(slice.index_axis(Axis(0), j).iter()) {
-                *fk = if v.is_set() { *fk + 1 } else { 0 };
+                if v.is_set() {
+                    *fk += 1;
+                    o[t] = *fk as f32;
+                    t += 1;
+                } else {
+                    *fk = 0;
+                }
             }
         });
-        out[i * plane..(i + 1) * plane].par_iter_mut().zip(fwd.par_iter()).for_each(|(o, &f)| *o = f as f32);
     }
+    run.par_iter_mut().for_each(|x| *x = 0);
+    let s0 = spacing[0];
     for i in (0..n0).rev() {
-        let s0 = spacing[0];
-        out[i * plane..(i + 1) * plane].par_iter_mut().zip(next.par_iter_mut()).for_each(|(o, nx)| {
-            if *o == 0.0 {
-                *nx = 0;
-            } else {
-                *nx += 1;
-                let d = (*o as u32).min(*nx) as f64 * s0;
-                *o = (d * d) as f32;
+        if crate::cancel::requested() {
+            return Err(Error::Interrupted);
+        }
+        let slice = mask.index_axis(Axis(0), i);
+        let rows = plane_starts(i);
+        let parts = row_parts(&mut out[rows[0]..rows[n1]], rows);
+        run.par_chunks_mut(n2).zip(parts).enumerate().for_each(|(j, (nx, o))| {
+            let mut t = 0;
+            for (nk, &v) in nx.iter_mut().zip(slice.index_axis(Axis(0), j).iter()) {
+                if v.is_set() {
+                    *nk += 1;
+                    let d = (o[t] as u32).min(*nk) as f64 * s0;
+                    o[t] = (d * d) as f32;
+                    t += 1;
+                } else {
+                    *nk = 0;
+                }
             }
         });
     }
-    // Axes 1 and 2 inside each contiguous axis-0 slab.
-    out.par_chunks_mut(plane).for_each_init(
-        || Envelope::new(n1.max(n2)),
-        |env, slab| {
+    drop(run);
+    // Axes 1 and 2, plane by plane: the plane's values spread into a buffer (zero at
+    // background), transformed there, and gathered back. The buffer is zero again
+    // after each plane, since only foreground entries are ever written.
+    let planes = row_parts(&mut out, &(0..=n0).map(|i| starts[i * n1]).collect::<Vec<_>>());
+    planes.into_par_iter().enumerate().filter(|(_, part)| !part.is_empty()).for_each_init(
+        || (Envelope::new(n1.max(n2)), vec![0f32; plane]),
+        |(env, buffer), (i, part)| {
+            // A run asked to stop gets a partial transform, which it discards.
+            if crate::cancel::requested() {
+                return;
+            }
+            let slice = mask.index_axis(Axis(0), i);
+            let foreground = |j: usize| {
+                slice
+                    .index_axis(Axis(0), j)
+                    .into_iter()
+                    .enumerate()
+                    .filter(|(_, v)| v.is_set())
+                    .map(move |(k, _)| j * n2 + k)
+            };
+            let mut t = 0;
+            for j in 0..n1 {
+                for at in foreground(j) {
+                    buffer[at] = part[t];
+                    t += 1;
+                }
+            }
             for k in 0..n2 {
-                env.line(slab, k, n2, n1, spacing[1]);
+                env.line(buffer, k, n2, n1, spacing[1]);
             }
             for j in 0..n1 {
-                env.line(slab, j * n2, 1, n2, spacing[2]);
+                env.line(buffer, j * n2, 1, n2, spacing[2]);
+            }
+            let mut t = 0;
+            for j in 0..n1 {
+                for at in foreground(j) {
+                    part[t] = std::mem::take(&mut buffer[at]);
+                    t += 1;
+                }
             }
         },
     );
-    out
+    Ok(out)
 }
 
 /// Scratch space of the 1-D lower-envelope transform.
@@ -220,11 +332,48 @@ mod tests {
             let fill = 50 + rnd(50);
             let m = Array3::from_shape_fn(shape, |_| u8::from(rnd(100) < fill));
             let s = if trial % 2 == 0 { [1.0, 1.0, 1.0] } else { [2.5, 0.7, 1.3] };
-            let fast = edt_squared(m.view(), s);
-            let slow = slow(&m, s);
+            let fast = edt_squared(m.view(), s).unwrap();
+            // The sparse transform holds the foreground voxels only, in C order.
+            let slow: Vec<f32> =
+                slow(&m, s).into_iter().zip(m.iter()).filter(|(_, &v)| v != 0).map(|(d, _)| d).collect();
+            assert_eq!(fast.len(), slow.len());
             for (a, b) in fast.iter().zip(&slow) {
                 assert!((a - b).abs() <= 1e-4 * b.max(1.0), "{a} vs {b} shape {shape:?}");
             }
+        }
+    }
+
+    /// The transform's allocation follows the foreground, not the box: a line of 40
+    /// voxels in a 40³ box gives 40 values, and the row offsets one per box row.
+    #[test]
+    fn sparse_volumes_cost_their_foreground() {
+        let mut m = Array3::<u8>::zeros((40, 40, 40));
+        for k in 0..40 {
+            m[[20, 17, k]] = 1;
+        }
+        let starts = foreground_rows(m.view()).unwrap();
+        assert_eq!(starts.len(), 40 * 40 + 1);
+        assert_eq!(starts[20 * 40 + 17], 0);
+        assert_eq!(starts[20 * 40 + 18], 40);
+        let d = edt_squared_rows(m.view(), &starts, [1.0; 3]).unwrap();
+        assert_eq!(d.len(), 40);
+        assert!(d.capacity() == 40);
+        // Every voxel of a 1-voxel line is 1 from background, its ends too.
+        assert_eq!(d, vec![1.0; 40]);
+    }
+
+    /// The same transform whatever the thread count (planes and rows in parallel).
+    #[test]
+    fn threads_do_not_change_the_transform() {
+        let mut rnd = crate::test_rng(7);
+        let m = Array3::from_shape_fn((23, 31, 17), |_| u8::from(rnd(100) < 80));
+        let run = |threads| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| edt_squared(m.view(), [1.5, 1.0, 0.5]).unwrap())
+        };
+        let one = run(1);
+        for threads in [2, 3, 8] {
+            assert!(run(threads).iter().zip(&one).all(|(a, b)| a.to_bits() == b.to_bits()));
         }
     }
 
@@ -233,14 +382,27 @@ mod tests {
         let m = Array3::from_shape_fn((6, 7, 8), |(i, j, k)| u8::from((i * 7 + j * 3 + k) % 5 != 0));
         let t = m.t(); // reversed axes, non-contiguous
         let owned = t.to_owned();
-        assert_eq!(edt_squared(t, [1.0, 2.0, 3.0]), edt_squared(owned.view(), [1.0, 2.0, 3.0]));
+        assert_eq!(edt_squared(t, [1.0, 2.0, 3.0]).unwrap(), edt_squared(owned.view(), [1.0, 2.0, 3.0]).unwrap());
     }
 
     #[test]
     fn spacing_is_checked() {
         assert!(check_spacing([1.0, 1.0, 1.0]).is_ok());
-        for bad in [[0.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, f64::NAN], [f64::INFINITY, 1.0, 1.0]] {
-            assert!(check_spacing(bad).is_err());
+        assert!(check_spacing([MIN_SPACING, 1.0, MAX_SPACING]).is_ok());
+        for bad in [
+            [0.0, 1.0, 1.0],
+            [1.0, -1.0, 1.0],
+            [1.0, 1.0, f64::NAN],
+            [f64::INFINITY, 1.0, 1.0],
+            [1e154, 1.0, 1.0],
+            [1.0, 1e18, 1.0],
+            [1.0, 1.0, 1e-23],
+            [MIN_SPACING * 0.99, 1.0, 1.0],
+            [1.0, MAX_SPACING * 1.01, 1.0],
+            [-0.0, 1.0, 1.0],
+        ] {
+            let e = check_spacing(bad).unwrap_err();
+            assert!(e.to_string().contains("[1e-12, 1e12]"), "{e}");
         }
     }
 }

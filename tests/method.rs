@@ -293,12 +293,84 @@ fn edge_cases() {
     assert_eq!(cycle_rank(&s), 0);
     assert!(s.degrees().iter().all(|&d| d <= 2));
     assert_eq!(s.degrees().iter().filter(|&&d| d == 1).count(), 2);
-    // All foreground: refused with a message.
-    let e =
-        Skeletonizer::new(Params::default())
-            .unwrap()
-            .run(Array3::<u8>::ones((4, 4, 4)).view(), [1.0; 3], &mut |_| true);
-    assert!(matches!(e, Err(vesselflow::Error::AllForeground(64))));
+    // Empty: an empty graph.
+    let s = run(&Array3::<u8>::zeros((4, 5, 6)));
+    assert!(s.is_empty() && s.edges.is_empty());
+    assert_eq!((s.info.foreground_voxels, s.info.mask_components), (0, 0));
+}
+
+/// A mask that is vessel everywhere is a solid block (background lies outside the
+/// array): it gets a connected graph inside the block, with radii no larger than the
+/// block's largest inscribed ball (half its smallest physical side).
+#[test]
+fn an_all_foreground_block_is_a_solid_block_with_its_graph() {
+    for (shape, spacing) in [([24, 24, 24], [1.0; 3]), ([40, 12, 12], [1.0; 3]), ([40, 12, 12], [0.5, 1.0, 1.0])] {
+        let mask = Array3::<u8>::ones(shape);
+        let s = run_with(mask.view(), spacing, Params::default());
+        assert!(!s.is_empty(), "{shape:?}");
+        assert_eq!(s.info.mask_components, 1);
+        assert_eq!(components(&s), 1, "{shape:?}: one solid block, one graph component");
+        assert!(s.info.converged || s.info.stalled, "{shape:?}: {:?}", s.info);
+        let inscribed = (0..3).map(|d| shape[d] as f64 * spacing[d] / 2.0).fold(f64::INFINITY, f64::min);
+        for (p, r) in s.positions.iter().zip(&s.radii) {
+            for d in 0..3 {
+                // Voxel centres span [0, (n - 1) spacing].
+                assert!((0.0..=(shape[d] - 1) as f64 * spacing[d]).contains(&p[d]), "{shape:?}: node {p:?} outside");
+            }
+            assert!(*r > 0.0 && *r <= inscribed, "{shape:?}: radius {r} vs inscribed {inscribed}");
+        }
+        // The centreline of an elongated block runs along its long axis.
+        if shape[0] > 2 * shape[1] {
+            let extent = |d: usize| {
+                let v = s.positions.iter().map(|p| p[d]);
+                v.clone().fold(f64::NEG_INFINITY, f64::max) - v.fold(f64::INFINITY, f64::min)
+            };
+            assert!(extent(0) > 2.0 * extent(1).max(extent(2)), "{shape:?}: {:?}", s.positions);
+        }
+    }
+}
+
+/// The method is scale-free within the supported spacing range: the same mask at
+/// spacing 1e-12 or 1e12 times the unit gives the same graph, scaled.
+#[test]
+fn extreme_spacings_in_range_give_the_scaled_graph() {
+    let (mask, _) = shapes::y_bifurcation([9, 40, 40], 2.5);
+    let base = [1.0, 0.5, 0.5];
+    let unit = run_with(mask.view(), base, Params::default());
+    for scale in [1e-12 / 0.5, 1e12] {
+        let spacing = base.map(|s| s * scale);
+        let s = run_with(mask.view(), spacing, Params::default());
+        assert_eq!((s.len(), &s.edges), (unit.len(), &unit.edges), "scale {scale}");
+        for (p, q) in s.positions.iter().zip(&unit.positions) {
+            assert!((0..3).all(|d| (p[d] / scale - q[d]).abs() <= 1e-6), "scale {scale}: {p:?} vs {q:?}");
+        }
+        for (r, q) in s.radii.iter().zip(&unit.radii) {
+            assert!((r / scale - q).abs() <= 1e-6, "scale {scale}: radius {r} vs {q}");
+        }
+    }
+}
+
+#[test]
+fn spacings_out_of_range_and_unaddressable_shapes_are_refused() {
+    let m = shapes::cylinder([10, 9, 9], 2.0);
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    for bad in [[1e154, 1.0, 1.0], [1.0, 1e18, 1.0], [1.0, 1.0, 1e-23], [1e13; 3], [1e-13; 3]] {
+        let e = sk.run(m.view(), bad, &mut |_| true).unwrap_err();
+        assert!(matches!(e, vesselflow::Error::InvalidSpacing(_)), "{bad:?}: {e}");
+        assert!(e.to_string().contains("[1e-12, 1e12]"), "{e}");
+    }
+    // In range on each axis, but the anisotropy puts the block beyond the cell keys.
+    let e = sk.run(m.view(), [1e-12, 1e-12, 1e12], &mut |_| true).unwrap_err();
+    assert!(matches!(e, vesselflow::Error::InvalidMask(_)) && e.to_string().contains("base cells"), "{e}");
+    // Shapes with no voxel give an empty graph; one too long for the cell keys is
+    // refused even when empty.
+    for shape in [(0, 5, 5), (3, 0, 2), (0, 0, 0)] {
+        let s = sk.run(Array3::<u8>::zeros(shape).view(), [1.0; 3], &mut |_| true).unwrap();
+        assert!(s.is_empty(), "{shape:?}");
+    }
+    let long = ndarray::ArrayView3::<u8>::from_shape((1 << 21, 0, 4), &[]).unwrap();
+    let e = sk.run(long, [1.0; 3], &mut |_| true).unwrap_err();
+    assert!(matches!(e, vesselflow::Error::InvalidMask(_)), "{e}");
 }
 
 #[test]

@@ -10,7 +10,14 @@ from numpy.typing import NDArray
 _ParamValue = bool | int | float | str
 
 __version__: str
-__all__ = ["Skeletonizer", "__version__", "cli_main", "param_defaults", "write_graph"]
+__all__ = [
+    "Skeletonizer",
+    "__version__",
+    "cli_main",
+    "memory_estimate",
+    "param_defaults",
+    "write_graph",
+]
 
 @final
 class Skeletonizer:
@@ -27,6 +34,14 @@ class Skeletonizer:
         progress: Callable[[str, int, int, float], object] | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], dict[str, Any]]:
         """Returns ``(positions (N, 3), radii (N,), edges (E, 2) int64, info)``."""
+
+def memory_estimate(
+    shape: tuple[int, int, int] | list[int],
+    foreground: int,
+    connectivity: int = 6,
+    threads: int = 0,
+) -> int:
+    """Estimated peak bytes beyond the mask of a run (the ``max_memory`` guard's figure)."""
 
 def param_defaults() -> list[tuple[str, _ParamValue]]:
     """Every parameter with its default, in documentation order."""

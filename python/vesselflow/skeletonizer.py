@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, Literal
@@ -78,6 +79,13 @@ class Skeletonizer:
         Cap on refinement iterations.
     threads : int >= 0
         Worker threads, 0 for one per core. The output does not depend on it.
+    max_memory : int, str or None
+        Refuse (``MemoryError``, naming what the run needs and what is allowed) a run
+        whose estimated peak memory exceeds this many bytes, before its heavy stages.
+        Bytes or a string with a unit (``"8GB"``, ``"512MiB"``). ``"auto"`` (default):
+        what this process may still use (the smallest of the cgroup limit, the
+        address-space limit and ``MemAvailable``), read when the run starts. ``0`` or
+        ``None``: no limit. The output does not depend on it.
 
     Examples
     --------
@@ -114,10 +122,13 @@ class Skeletonizer:
         refine_area: float = 50.0,
         max_refine_iterations: int = 100,
         threads: int = 0,
+        max_memory: int | str | None = "auto",
     ) -> None:
         # The signature above spells every parameter out for help() and type checkers;
         # the Rust core validates them (tests check these defaults against the core's).
         params = {name: value for name, value in locals().items() if name != "self"}
+        if max_memory is None:
+            params["max_memory"] = 0
         self._core = _core.Skeletonizer(**params)
 
     @property
@@ -164,12 +175,20 @@ class Skeletonizer:
             spurs shorter than this many radii of the vessel they join are removed.
             Default ``None``: no pruning.
 
-        The GIL is released while the core runs; Ctrl-C raises ``KeyboardInterrupt``.
+        An empty mask gives an empty graph and a ``UserWarning``; a mask that is
+        vessel everywhere is a solid block (background lies outside the array). The
+        spacing must lie in [1e-12, 1e12] on every axis (``ValueError`` otherwise).
+
+        The GIL is released while the core runs; Ctrl-C raises ``KeyboardInterrupt``
+        within a fraction of a second, at any stage. An internal error (a bug) is a
+        ``RuntimeError`` starting "internal error, please report".
         A run that stops at ``max_iterations`` before converging (or stalling) logs a
         warning on the ``vesselflow`` logger.
         """
         with _progress_callback(progress, int(self.params["max_iterations"])) as callback:
             positions, radii, edges, info = self._core.run(mask, spacing, callback)
+        if info["foreground_voxels"] == 0:
+            warnings.warn("the mask is empty: the graph has no nodes", UserWarning, stacklevel=2)
         if not (info["converged"] or info["stalled"]):
             logger.warning(
                 "contraction stopped at max_iterations=%d before converging "

@@ -37,6 +37,7 @@ def test_core_lists_every_method_parameter_with_its_default():
         "refine_area": 50.0,
         "max_refine_iterations": 100,
         "threads": 0,
+        "max_memory": "auto",
     }
 
 
@@ -158,3 +159,22 @@ def test_skeletonize_passes_parameters(tube):
     full = vesselflow.skeletonize(tube)
     assert full.info["iterations"] > 1
     assert full.params == DEFAULTS
+
+
+def test_a_run_over_max_memory_is_a_memory_error_naming_both_numbers(tube):
+    with pytest.raises(MemoryError, match=r"needs about .* but max_memory allows 1000 B") as err:
+        vesselflow.skeletonize(tube, max_memory="1KB")
+    assert "vesselflow.distributed" in str(err.value)
+    assert vesselflow.Skeletonizer(max_memory="512MiB").params["max_memory"] == 512 * 2**20
+    with pytest.raises(ValueError, match="max_memory"):
+        vesselflow.Skeletonizer(max_memory="lots")
+
+
+def test_a_generous_max_memory_gives_the_same_graph(tube):
+    free = vesselflow.skeletonize(tube, max_memory=None)
+    assert free.params["max_memory"] == 0
+    for limit in ("64GiB", "auto", 2**40):
+        graph = vesselflow.skeletonize(tube, max_memory=limit)
+        np.testing.assert_array_equal(graph.positions, free.positions)
+        np.testing.assert_array_equal(graph.radii, free.radii)
+        np.testing.assert_array_equal(graph.edges, free.edges)

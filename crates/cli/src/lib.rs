@@ -10,9 +10,13 @@
 //! ```
 //!
 //! Exit codes: 0 success; 1 a file could not be read or written, or the run
-//! failed; 2 the command line is wrong (unknown option, bad parameter value,
-//! unsupported file extension); 130 interrupted. Every error is one line on
-//! stderr, `vesselflow: error: <message>`, and no output file is left behind.
+//! failed (including an internal error: a caught panic, reported in one line, never
+//! a backtrace); 2 the command line is wrong (unknown option, bad parameter value,
+//! unsupported file extension); 130 interrupted (SIGINT, SIGTERM or SIGHUP). Every
+//! error is one line on stderr, `vesselflow: error: <message>`. The graph and the
+//! plot are written to temporary files beside their destinations and renamed there
+//! only when both are complete: a failure or an interruption leaves the previous
+//! files, or none, and no temporary file.
 
 mod args;
 mod plot;
@@ -22,13 +26,16 @@ mod summary;
 use args::{Parsed, Task, Verbosity};
 use ndarray::ArrayView3;
 use report::Reporter;
+use std::cell::RefCell;
 use std::ffi::OsString;
 use std::io::Write;
-use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{LazyLock, Mutex};
 use std::time::Instant;
 use summary::GraphSummary;
-use vesselflow::{shapes, Params, Skeleton, Skeletonizer};
+use tempfile::TempDir;
+use vesselflow::{shapes, Params, Skeleton, Skeletonizer, Stop};
 use vesselflow_io::IoError;
 
 /// Exit code of a run that failed (I/O or the method).
@@ -89,12 +96,21 @@ impl From<vesselflow::Error> for Failure {
     }
 }
 
-/// Set by the signal handler that [`run`] installs.
-static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+/// Raised by the signal handler that [`run`] installs.
+static STOP: LazyLock<Stop> = LazyLock::new(Stop::new);
 
-/// Entry point of the `vesselflow` binary: installs a Ctrl-C (and SIGTERM/SIGHUP)
-/// handler, then runs [`run_with`]. The first signal stops the run at the next
-/// progress report and exits with 130 without writing; a second one exits at once.
+/// Signals received by the handler that [`run`] installs.
+static SIGNALS: AtomicUsize = AtomicUsize::new(0);
+
+/// Staging directories of outputs being written, removed by the third signal before
+/// it ends the process (the normal return path removes them itself).
+static STAGING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// Entry point of the `vesselflow` binary: installs a handler of SIGINT, SIGTERM
+/// and SIGHUP, then runs [`run_with`]. The first signal stops the run within a
+/// fraction of a second (the stages poll the flag it raises) and exits with 130,
+/// leaving the previous output files or none; a second one is acknowledged while
+/// the temporary files are removed; a third removes them itself and exits at once.
 ///
 /// Call this only from a program's `main`: it takes over the process's signal
 /// handling. Embedders (the Python bindings) call [`run_with`] instead.
@@ -105,36 +121,57 @@ where
 {
     // If a handler cannot be installed, signals keep their default action (the
     // process ends, and the atomic writers still leave no partial file).
-    let _ = ctrlc::set_handler(|| {
-        if INTERRUPTED.swap(true, Ordering::SeqCst) {
+    // `ctrlc` runs this on a thread of its own, not in the signal handler itself.
+    let _ = ctrlc::set_handler(|| match SIGNALS.fetch_add(1, Ordering::SeqCst) {
+        0 => {
+            STOP.request();
+            eprintln!("\nvesselflow: stopping (press Ctrl-C twice more to quit at once)");
+        }
+        1 => eprintln!("\nvesselflow: stopping, removing temporary files (press Ctrl-C again to quit at once)"),
+        _ => {
+            for dir in STAGING.lock().unwrap_or_else(|e| e.into_inner()).iter() {
+                let _ = std::fs::remove_dir_all(dir);
+            }
             std::process::exit(EXIT_INTERRUPTED);
         }
-        eprintln!("\nvesselflow: stopping at the next step (press Ctrl-C again to quit at once)");
     });
-    run_with(args, &mut || INTERRUPTED.load(Ordering::SeqCst))
+    run_with(args, &STOP)
 }
 
 /// Run the command line `args` (program name first) and return the exit code.
-/// Installs no signal handler: `interrupted` is polled before and after each
-/// stage and at every progress report of the run, and a `true` stops it (exit
-/// 130, no output). The Python bindings pass a closure that checks Python's
-/// pending signals, so Ctrl-C works in the console script too.
-pub fn run_with<I, T>(args: I, interrupted: &mut dyn FnMut() -> bool) -> i32
+/// Installs no signal handler: the run stops (exit 130, no output) soon after
+/// `stop` is requested, from another thread or a signal handler; the stages poll
+/// it. The Python bindings raise it when Python sees Ctrl-C, so Ctrl-C works in the
+/// console script too.
+///
+/// A panic is caught here and reported as an internal error (exit 1, one line).
+pub fn run_with<I, T>(args: I, stop: &Stop) -> i32
 where
     I: IntoIterator<Item = T>,
     T: Into<OsString> + Clone,
 {
-    let outcome = args::parse(args).and_then(|parsed| match parsed {
-        Parsed::Exit { text, to_stderr, code } => {
-            if to_stderr {
-                eprint!("{text}");
-            } else {
-                print!("{text}");
-            }
-            Ok(code)
-        }
-        Parsed::Run(task, verbosity) => execute(*task, verbosity, interrupted).map(|()| 0),
-    });
+    let context = RefCell::new(String::from("reading the command line"));
+    let outcome = {
+        let _quiet = vesselflow::error::quiet_panics();
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            args::parse(args).and_then(|parsed| match parsed {
+                Parsed::Exit { text, to_stderr, code } => {
+                    if to_stderr {
+                        eprint!("{text}");
+                    } else {
+                        print!("{text}");
+                    }
+                    Ok(code)
+                }
+                Parsed::Run(task, verbosity) => execute(*task, verbosity, stop, &context).map(|()| 0),
+            })
+        }))
+        .unwrap_or_else(|payload| {
+            let message = vesselflow::error::panic_message(payload.as_ref()).replace('\n', " ");
+            let e = vesselflow::Error::Internal(format!("{message} ({})", context.borrow()));
+            Err(Failure::Run(e.to_string()))
+        })
+    };
     match outcome {
         Ok(code) => code,
         Err(failure) => {
@@ -144,9 +181,10 @@ where
     }
 }
 
-fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bool) -> Result<(), Failure> {
+fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<String>) -> Result<(), Failure> {
     match task {
         Task::Skeletonize { input, output, spacing, plot, params } => {
+            *context.borrow_mut() = format!("input {}", input.display());
             // Refuse a bad output path before reading or computing anything.
             vesselflow_io::check_graph_output(&output)?;
             if let Some(path) = &plot {
@@ -167,17 +205,17 @@ fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bo
                 shape[2],
                 volume.spacing
             ));
-            let skel = skeletonize(&skeletonizer, volume.mask.view(), volume.spacing, &mut reporter, interrupted)?;
-            save(&output, &skel, skeletonizer.params(), interrupted)?;
-            reporter.line(&format!(
-                "vesselflow: wrote {} ({} nodes, {} edges)",
-                output.display(),
-                skel.len(),
-                skel.edges.len()
-            ));
-            if let Some(path) = &plot {
-                save_plot(path, volume.mask.view(), volume.spacing, &skel, &reporter, interrupted)?;
-            }
+            *context.borrow_mut() = format!(
+                "input {}, shape {} x {} x {}, spacing {:?}",
+                input.display(),
+                shape[0],
+                shape[1],
+                shape[2],
+                volume.spacing
+            );
+            let skel = skeletonize(&skeletonizer, volume.mask.view(), volume.spacing, &mut reporter, stop)?;
+            let plot = plot.as_deref().map(|path| (path, volume.mask.view(), volume.spacing));
+            save(Some(&output), plot, &skel, skeletonizer.params(), &reporter, stop)?;
             Ok(())
         }
         Task::Demo { output, plot, params } => {
@@ -189,17 +227,13 @@ fn execute(task: Task, verbosity: Verbosity, interrupted: &mut dyn FnMut() -> bo
             }
             let skeletonizer = Skeletonizer::new(params)?;
             let mask = shapes::demo_volume();
+            *context.borrow_mut() = format!("built-in demo volume, shape {:?}, spacing [1.0, 1.0, 1.0]", mask.dim());
             let mut reporter = Reporter::new(verbosity);
             let started = Instant::now();
-            let skel = skeletonize(&skeletonizer, mask.view(), [1.0; 3], &mut reporter, interrupted)?;
+            let skel = skeletonize(&skeletonizer, mask.view(), [1.0; 3], &mut reporter, stop)?;
             let seconds = started.elapsed().as_secs_f64();
-            if let Some(path) = &output {
-                save(path, &skel, skeletonizer.params(), interrupted)?;
-                reporter.line(&format!("vesselflow: wrote {}", path.display()));
-            }
-            if let Some(path) = &plot {
-                save_plot(path, mask.view(), [1.0; 3], &skel, &reporter, interrupted)?;
-            }
+            let plot_of = plot.as_deref().map(|path| (path, mask.view(), [1.0; 3]));
+            save(output.as_deref(), plot_of, &skel, skeletonizer.params(), &reporter, stop)?;
             let (n0, n1, n2) = mask.dim();
             let info = &skel.info;
             let text = format!(
@@ -230,47 +264,145 @@ fn skeletonize(
     mask: ArrayView3<'_, u8>,
     spacing: [f64; 3],
     reporter: &mut Reporter,
-    interrupted: &mut dyn FnMut() -> bool,
+    stop: &Stop,
 ) -> Result<Skeleton, Failure> {
-    if interrupted() {
+    if stop.is_requested() {
         return Err(Failure::Interrupted);
     }
-    let result = skeletonizer.run(mask, spacing, &mut |p| {
+    // `max_memory` left at "auto": what this process may still use, mask read.
+    let limited;
+    let skeletonizer = match skeletonizer.params().max_memory {
+        Some(_) => skeletonizer,
+        None => {
+            let mut params = skeletonizer.params().clone();
+            params.max_memory = Some(vesselflow_io::budget::usable_memory().unwrap_or(0));
+            limited = Skeletonizer::new(params)?;
+            &limited
+        }
+    };
+    let result = skeletonizer.run_with_stop(mask, spacing, stop, &mut |p| {
         reporter.observe(p);
-        !interrupted()
+        !stop.is_requested()
     });
     reporter.finish();
     let skel = result?;
     reporter.run_details(&skel.info);
+    if skel.info.foreground_voxels == 0 {
+        // Not an error (a block of a larger volume may hold no vessel), but worth a
+        // word even with `--quiet`: an empty file usually means a wrong input.
+        eprintln!("vesselflow: warning: the mask is empty: the graph has no nodes");
+    } else if !(skel.info.converged || skel.info.stalled) {
+        // Also a word under `--quiet`: the graph may still hold unreduced knots.
+        eprintln!(
+            "vesselflow: warning: the contraction stopped at --max-iterations {} before converging \
+             (short-cycle area {:.3} times the stop level); raise --max-iterations or lower --gamma",
+            skel.info.iterations,
+            skel.info.area_per_iteration.last().copied().unwrap_or(0.0)
+                / skel.info.area_reference.max(f64::MIN_POSITIVE),
+        );
+    }
     Ok(skel)
 }
 
-/// Write the graph unless an interruption arrived after the run's last report.
-fn save(path: &Path, skel: &Skeleton, params: &Params, interrupted: &mut dyn FnMut() -> bool) -> Result<(), Failure> {
-    if interrupted() {
-        return Err(Failure::Interrupted);
-    }
-    Ok(vesselflow_io::write_graph(path, skel, params)?)
+/// A temporary directory beside an output file, where the file is written before it
+/// is renamed into place; removed (with anything left in it) when dropped, and
+/// listed in [`STAGING`] meanwhile so that a forced exit can remove it too.
+struct Staging {
+    dir: Option<TempDir>,
+    staged: PathBuf,
+    target: PathBuf,
 }
 
-/// Draw and write the `--plot` picture, and say on stderr what its colour bar spans.
-fn save_plot(
-    path: &Path,
-    mask: ArrayView3<'_, u8>,
-    spacing: [f64; 3],
-    skel: &Skeleton,
-    reporter: &Reporter,
-    interrupted: &mut dyn FnMut() -> bool,
-) -> Result<(), Failure> {
-    if interrupted() {
-        return Err(Failure::Interrupted);
+impl Staging {
+    fn beside(target: &Path) -> Result<Staging, Failure> {
+        let parent = match target.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        let dir = tempfile::Builder::new()
+            .prefix(".vesselflow-")
+            .suffix(".tmp")
+            .tempdir_in(parent)
+            .map_err(|e| Failure::Run(format!("cannot write {}: {e}", target.display())))?;
+        STAGING.lock().unwrap_or_else(|e| e.into_inner()).push(dir.path().to_path_buf());
+        // The same file name, so that the writer picks the format from its extension.
+        let name = target.file_name().map_or_else(|| "output".into(), |n| n.to_owned());
+        let staged = dir.path().join(name);
+        Ok(Staging { dir: Some(dir), staged, target: target.to_path_buf() })
     }
-    let picture = plot::render(mask, spacing, skel);
-    plot::write_png(path, &picture.image)?;
-    let bar = match picture.radius_range {
-        Some([lo, hi]) => format!("colour bar: edge radius {lo:.4} (bottom) to {hi:.4} (top), viridis"),
-        None => "no edges to draw".to_string(),
-    };
-    reporter.line(&format!("vesselflow: wrote {} ({bar})", path.display()));
+
+    /// Move the staged file to its destination.
+    fn publish(&self) -> Result<(), Failure> {
+        std::fs::rename(&self.staged, &self.target)
+            .map_err(|e| Failure::Run(format!("cannot write {}: {e}", self.target.display())))
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if let Some(dir) = self.dir.take() {
+            let path = dir.path().to_path_buf();
+            drop(dir);
+            STAGING.lock().unwrap_or_else(|e| e.into_inner()).retain(|p| *p != path);
+        }
+    }
+}
+
+/// Write the graph (to `graph`, if given) and the `--plot` picture (if asked), each
+/// first to a temporary file beside its destination; only when both are complete and
+/// no interruption has arrived are they renamed into place. On any failure, panic or
+/// interruption the temporary files are removed and the previous files stay.
+fn save(
+    graph: Option<&Path>,
+    plot: Option<(&Path, ArrayView3<'_, u8>, [f64; 3])>,
+    skel: &Skeleton,
+    params: &Params,
+    reporter: &Reporter,
+    stop: &Stop,
+) -> Result<(), Failure> {
+    let interrupted = || if stop.is_requested() { Err(Failure::Interrupted) } else { Ok(()) };
+    interrupted()?;
+    let graph = graph.map(Staging::beside).transpose()?;
+    let plot = plot.map(|(path, mask, spacing)| Staging::beside(path).map(|s| (s, mask, spacing))).transpose()?;
+    if let Some(g) = &graph {
+        vesselflow_io::write_graph(&g.staged, skel, params).map_err(|e| rename_in_error(e.to_string(), g))?;
+    }
+    interrupted()?;
+    let mut bar = None;
+    if let Some((p, mask, spacing)) = &plot {
+        vesselflow::pipeline::debug_panic("plot");
+        let picture = plot::render(*mask, *spacing, skel);
+        plot::write_png(&p.staged, &picture.image).map_err(|e| match e {
+            Failure::Run(m) => Failure::Run(rename_in_message(m, p)),
+            other => other,
+        })?;
+        bar = Some(match picture.radius_range {
+            Some([lo, hi]) => format!("colour bar: edge radius {lo:.4} (bottom) to {hi:.4} (top), viridis"),
+            None => "no edges to draw".to_string(),
+        });
+    }
+    interrupted()?;
+    if let Some(g) = &graph {
+        g.publish()?;
+        reporter.line(&format!(
+            "vesselflow: wrote {} ({} nodes, {} edges)",
+            g.target.display(),
+            skel.len(),
+            skel.edges.len()
+        ));
+    }
+    if let (Some((p, _, _)), Some(bar)) = (&plot, bar) {
+        p.publish()?;
+        reporter.line(&format!("vesselflow: wrote {} ({bar})", p.target.display()));
+    }
     Ok(())
+}
+
+/// An error about a staged file, told about its destination instead.
+fn rename_in_message(message: String, s: &Staging) -> String {
+    message.replace(&s.staged.display().to_string(), &s.target.display().to_string())
+}
+
+fn rename_in_error(message: String, s: &Staging) -> Failure {
+    Failure::Run(rename_in_message(message, s))
 }

@@ -281,6 +281,23 @@ fn stderr_reports_stages_and_timings_unless_quiet() {
 }
 
 #[test]
+fn a_run_stopped_at_the_cap_says_so_even_when_quiet() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let json = dir.path().join("tube.json");
+    let capped = ["skeletonize", path_str(&input), "-o", path_str(&json), "--max-iterations", "1", "-q"];
+    let out = vesselflow(&capped);
+    assert_eq!(out.status.code(), Some(0));
+    let doc: Value = serde_json::from_reader(File::open(&json).unwrap()).unwrap();
+    assert_eq!(doc["info"]["converged"], Value::Bool(false), "one iteration cannot converge this tube");
+    let err = stderr(&out);
+    assert!(err.contains("warning: the contraction stopped at --max-iterations 1 before converging"), "{err}");
+    // A converged run says nothing under --quiet.
+    let full = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&json), "-q"]);
+    assert!(stderr(&full).is_empty(), "{}", stderr(&full));
+}
+
+#[test]
 fn demo_prints_the_summary() {
     let dir = TempDir::new().unwrap();
     let output = dir.path().join("demo.graphml");
@@ -312,19 +329,27 @@ fn embedded_entry_stops_when_asked_and_writes_nothing() {
     let args = ["vesselflow", "skeletonize", path_str(&input), "-o", path_str(&output), "-q"];
 
     // Asked before anything runs.
-    assert_eq!(vesselflow_cli::run_with(args, &mut || true), vesselflow_cli::EXIT_INTERRUPTED);
-    // Asked in the middle of the run: the third poll says stop.
-    let mut polls = 0;
-    let code = vesselflow_cli::run_with(args, &mut || {
-        polls += 1;
-        polls >= 3
+    let stop = vesselflow::Stop::new();
+    stop.request();
+    assert_eq!(vesselflow_cli::run_with(args, &stop), vesselflow_cli::EXIT_INTERRUPTED);
+    // Asked from another thread in the middle of the contraction.
+    let stop = vesselflow::Stop::new();
+    let code = std::thread::scope(|scope| {
+        let asker = stop.clone();
+        scope.spawn(move || {
+            while asker.cg_iterations() < 3 {
+                std::thread::yield_now();
+            }
+            asker.request();
+        });
+        vesselflow_cli::run_with(args, &stop)
     });
     assert_eq!(code, vesselflow_cli::EXIT_INTERRUPTED);
-    assert_eq!(polls, 3, "stops at the first poll that asks");
     assert_eq!(files_in(dir.path()), ["tube.npy"]);
     // Never asked: runs to completion.
-    assert_eq!(vesselflow_cli::run_with(args, &mut || false), 0);
+    assert_eq!(vesselflow_cli::run_with(args, &vesselflow::Stop::new()), 0);
     assert!(output.exists());
+    assert_eq!(files_in(dir.path()), ["g.json", "tube.npy"]);
 }
 
 #[cfg(unix)]
@@ -469,4 +494,152 @@ fn plot_path_must_be_png_and_writable() {
     assert_error(&out, 1, "taken.png");
     assert_eq!(files_in(dir.path()), ["plain", "taken.png", "tube.npy"]);
     assert!(files_in(&dir.path().join("taken.png")).is_empty());
+}
+
+/// The binary with extra environment variables.
+fn vesselflow_env(args: &[&str], env: &[(&str, &str)]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vesselflow")).args(args).envs(env.iter().copied()).output().unwrap()
+}
+
+#[test]
+fn a_panic_is_one_line_internal_error_without_backtrace_or_output() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let output = dir.path().join("g.json");
+    for stage in ["edt", "contract", "output"] {
+        let out = vesselflow_env(
+            &["skeletonize", path_str(&input), "-o", path_str(&output), "-q"],
+            &[("VESSELFLOW_DEBUG_PANIC", stage), ("RUST_BACKTRACE", "1")],
+        );
+        assert_error(&out, 1, "internal error, please report: VESSELFLOW_DEBUG_PANIC: forced panic");
+        let err = stderr(&out);
+        assert!(err.contains(&format!("stage `{stage}`")) && err.contains("spacing [1.0, 1.0, 1.0]"), "{err}");
+        assert!(err.contains("shape 40 x 21 x 21"), "{err}");
+        assert!(!err.contains("panicked") && !err.contains("backtrace"), "{err}");
+        assert_eq!(files_in(dir.path()), ["tube.npy"]);
+    }
+}
+
+#[test]
+fn a_failing_plot_leaves_neither_the_graph_nor_temporary_files() {
+    let dir = TempDir::new().unwrap();
+    let input = across_tube_npy(dir.path());
+    let (output, png) = (dir.path().join("g.json"), dir.path().join("p.png"));
+    fs::write(&output, "previous graph").unwrap();
+    fs::write(&png, "previous plot").unwrap();
+    let args = ["skeletonize", path_str(&input), "-o", path_str(&output), "--plot", path_str(&png), "-q"];
+    let out = vesselflow_env(&args, &[("VESSELFLOW_DEBUG_PANIC", "plot")]);
+    assert_error(&out, 1, "stage `plot`");
+    assert_eq!(fs::read_to_string(&output).unwrap(), "previous graph");
+    assert_eq!(fs::read_to_string(&png).unwrap(), "previous plot");
+    assert_eq!(files_in(dir.path()), ["across.npy", "g.json", "p.png"]);
+    // Without the failure both are replaced, and no temporary file is left.
+    let out = vesselflow(&args);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(fs::read_to_string(&output).unwrap().contains("positions"));
+    assert!(image::open(&png).is_ok());
+    assert_eq!(files_in(dir.path()), ["across.npy", "g.json", "p.png"]);
+}
+
+#[test]
+fn an_empty_mask_warns_and_an_all_vessel_block_gets_its_graph() {
+    let dir = TempDir::new().unwrap();
+    let empty = dir.path().join("empty.npy");
+    ndarray::Array3::<u8>::zeros((6, 7, 8)).write_npy(File::create(&empty).unwrap()).unwrap();
+    let output = dir.path().join("g.json");
+    let out = vesselflow(&["skeletonize", path_str(&empty), "-o", path_str(&output), "-q"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert_eq!(stderr(&out), "vesselflow: warning: the mask is empty: the graph has no nodes\n");
+    let graph: Value = serde_json::from_str(&fs::read_to_string(&output).unwrap()).unwrap();
+    assert_eq!(graph["positions"].as_array().map(Vec::len), Some(0), "{graph}");
+
+    let block = dir.path().join("block.npy");
+    ndarray::Array3::<u8>::ones((20, 8, 8)).write_npy(File::create(&block).unwrap()).unwrap();
+    let out = vesselflow(&["skeletonize", path_str(&block), "-o", path_str(&output), "-q"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(stderr(&out).is_empty(), "{}", stderr(&out));
+    let graph: Value = serde_json::from_str(&fs::read_to_string(&output).unwrap()).unwrap();
+    assert!(graph["positions"].as_array().is_some_and(|p| !p.is_empty()), "{graph}");
+}
+
+/// Start the binary on `input` writing `output`, and return it once the run is done
+/// and the write is about to begin (the timing table's last line is printed then).
+#[cfg(unix)]
+fn spawn_until_written(input: &Path, output: &Path, extra: &[&str]) -> std::process::Child {
+    use std::io::{BufRead, BufReader};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vesselflow"))
+        .args(["skeletonize", path_str(input), "-o", path_str(output)])
+        .args(extra)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    for line in lines.by_ref() {
+        if line.unwrap().starts_with("total") {
+            break;
+        }
+    }
+    // Keep draining stderr so that the child never blocks on a full pipe.
+    std::thread::spawn(move || lines.for_each(drop));
+    child
+}
+
+#[cfg(unix)]
+fn signal(child: &std::process::Child, name: &str) {
+    let kill = Command::new("kill").args([name, &child.id().to_string()]).status().unwrap();
+    assert!(kill.success());
+}
+
+/// A solid block whose grid graph (no contraction) is large: writing it as GraphML
+/// takes a good part of a second, so signals land during the write.
+#[cfg(unix)]
+fn big_graph_input(dir: &Path) -> (PathBuf, [&'static str; 4]) {
+    let input = dir.join("block.npy");
+    ndarray::Array3::<u8>::ones((64, 64, 64)).write_npy(File::create(&input).unwrap()).unwrap();
+    (input, ["--max-iterations", "0", "--max-refine-iterations", "0"])
+}
+
+#[cfg(unix)]
+#[test]
+fn sigterm_during_the_write_exits_130_and_keeps_the_previous_file() {
+    let dir = TempDir::new().unwrap();
+    let (input, extra) = big_graph_input(dir.path());
+    let output = dir.path().join("g.graphml");
+    fs::write(&output, "previous result").unwrap();
+    let child = spawn_until_written(&input, &output, &extra);
+    signal(&child, "-TERM");
+    let status = child.wait_with_output().unwrap().status;
+    assert_eq!(status.code(), Some(130));
+    assert_eq!(fs::read_to_string(&output).unwrap(), "previous result");
+    assert_eq!(files_in(dir.path()), ["block.npy", "g.graphml"]);
+}
+
+#[cfg(unix)]
+#[test]
+fn two_sigterms_during_the_write_leave_no_temporary_file() {
+    let dir = TempDir::new().unwrap();
+    let (input, extra) = big_graph_input(dir.path());
+    let output = dir.path().join("g.graphml");
+    let child = spawn_until_written(&input, &output, &extra);
+    signal(&child, "-TERM");
+    signal(&child, "-TERM");
+    let status = child.wait_with_output().unwrap().status;
+    assert_eq!(status.code(), Some(130));
+    assert_eq!(files_in(dir.path()), ["block.npy"]);
+}
+
+#[test]
+fn a_run_over_max_memory_is_refused_in_one_line_naming_both_numbers() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path());
+    let output = dir.path().join("g.json");
+    let out = vesselflow(&["-q", "skeletonize", path_str(&input), "-o", path_str(&output), "--max-memory", "1KB"]);
+    assert_error(&out, 1, "max_memory allows 1000 B");
+    assert!(stderr(&out).contains("needs about"), "{}", stderr(&out));
+    assert!(!output.exists());
+    // A generous limit changes nothing; the file records the limit asked for.
+    let out = vesselflow(&["-q", "skeletonize", path_str(&input), "-o", path_str(&output), "--max-memory", "64GiB"]);
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    let bad = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output), "--max-memory", "lots"]);
+    assert_error(&bad, 2, "max_memory");
 }

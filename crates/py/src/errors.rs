@@ -3,14 +3,15 @@
 //! Caller mistakes (bad parameter values, spacing, masks) are `ValueError`, an unknown
 //! parameter name is the `TypeError` Python raises for an unexpected keyword, and an
 //! interrupted run re-raises whatever stopped it: the exception of the progress
-//! callback, or `KeyboardInterrupt` from Ctrl-C. File errors are `OSError` or
+//! callback, or `KeyboardInterrupt` from Ctrl-C. A run over `max_memory` is a
+//! `MemoryError` naming what it needs and what is allowed. File errors are `OSError` or
 //! `ValueError`.
 
 use std::io::ErrorKind;
 
 use pyo3::exceptions::{
-    PyFileExistsError, PyFileNotFoundError, PyIsADirectoryError, PyKeyboardInterrupt, PyNotADirectoryError, PyOSError,
-    PyPermissionError, PyRuntimeError, PyTypeError, PyValueError,
+    PyFileExistsError, PyFileNotFoundError, PyIsADirectoryError, PyKeyboardInterrupt, PyMemoryError,
+    PyNotADirectoryError, PyOSError, PyPermissionError, PyRuntimeError, PyTypeError, PyValueError,
 };
 use pyo3::PyErr;
 use vesselflow::Error;
@@ -20,7 +21,7 @@ use vesselflow_io::IoError;
 /// the run, if any; it takes the place of [`Error::Interrupted`].
 pub fn to_py(err: Error, pending: Option<PyErr>) -> PyErr {
     match err {
-        Error::InvalidParameter { .. } | Error::InvalidSpacing(_) | Error::InvalidMask(_) | Error::AllForeground(_) => {
+        Error::InvalidParameter { .. } | Error::InvalidSpacing(_) | Error::InvalidMask(_) => {
             PyValueError::new_err(err.to_string())
         }
         Error::UnknownParameter(ref name) => PyTypeError::new_err(format!(
@@ -28,7 +29,8 @@ pub fn to_py(err: Error, pending: Option<PyErr>) -> PyErr {
             vesselflow::Params::NAMES.join(", ")
         )),
         Error::Interrupted => pending.unwrap_or_else(|| PyKeyboardInterrupt::new_err("interrupted")),
-        Error::ThreadPool { .. } => PyRuntimeError::new_err(err.to_string()),
+        Error::ThreadPool { .. } | Error::Internal(_) => PyRuntimeError::new_err(err.to_string()),
+        Error::OutOfMemory { .. } => PyMemoryError::new_err(err.to_string()),
     }
 }
 
@@ -51,6 +53,7 @@ pub fn io_to_py(err: IoError) -> PyErr {
             ErrorKind::NotADirectory => PyNotADirectoryError::new_err(message),
             _ => PyOSError::new_err(message),
         },
+        IoError::TooLarge { .. } => PyMemoryError::new_err(message),
         IoError::Corrupt { .. }
         | IoError::UnsupportedVolume { .. }
         | IoError::NotAMask { .. }
@@ -59,4 +62,17 @@ pub fn io_to_py(err: IoError) -> PyErr {
         | IoError::UnsupportedGraph { .. }
         | IoError::InvalidGraph { .. } => PyValueError::new_err(message),
     }
+}
+
+/// Run `f` (core or file work, usually with the GIL released), turning a panic into
+/// `RuntimeError("internal error, please report: <panic message> (<context>)")`: the
+/// last line of defence, so that no panic reaches Python as a `PanicException` and
+/// nothing is printed by the panic hook. Must not be called with a Python object
+/// borrowed in a state a panic could leave half-changed (none is).
+pub fn no_panic<R>(context: impl FnOnce() -> String, f: impl FnOnce() -> R) -> Result<R, PyErr> {
+    let _quiet = vesselflow::error::quiet_panics();
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|payload| {
+        let message = vesselflow::error::panic_message(payload.as_ref());
+        PyRuntimeError::new_err(Error::Internal(format!("{message} ({})", context())).to_string())
+    })
 }

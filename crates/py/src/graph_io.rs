@@ -41,5 +41,7 @@ pub fn write_graph(
         info: &info,
         params: &params,
     };
-    py.detach(|| vesselflow_io::write_graph_arrays(&path, &graph)).map_err(errors::io_to_py)
+    let context = || format!("writing {} nodes to {}", graph.positions.nrows(), path.display());
+    py.detach(|| errors::no_panic(context, || vesselflow_io::write_graph_arrays(&path, &graph)))?
+        .map_err(errors::io_to_py)
 }

@@ -8,8 +8,10 @@
 mod cli;
 mod errors;
 mod graph_io;
+mod memory;
 mod params;
 mod skeletonizer;
+mod watch;
 
 use pyo3::prelude::*;
 
@@ -18,6 +20,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<skeletonizer::PySkeletonizer>()?;
     m.add_function(wrap_pyfunction!(params::param_defaults, m)?)?;
+    m.add_function(wrap_pyfunction!(memory::memory_estimate, m)?)?;
     m.add_function(wrap_pyfunction!(graph_io::write_graph, m)?)?;
     m.add_function(wrap_pyfunction!(cli::cli_main, m)?)?;
     Ok(())

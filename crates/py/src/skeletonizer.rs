@@ -9,8 +9,8 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use vesselflow::{Params, Progress, RunInfo, Skeleton, Voxel};
 
-use crate::errors;
 use crate::params::{value_from_py, value_to_py};
+use crate::{errors, watch};
 
 /// The method with a fixed set of parameters (see `vesselflow.Skeletonizer`).
 #[pyclass(module = "vesselflow._core", name = "Skeletonizer", frozen)]
@@ -30,7 +30,8 @@ impl PySkeletonizer {
             let name: String = key.extract()?;
             p.set(&name, &value_from_py(&name, &value)?).map_err(errors::core)?;
         }
-        let inner = vesselflow::Skeletonizer::new(p).map_err(errors::core)?;
+        let inner = errors::no_panic(|| format!("parameters {p:?}"), || vesselflow::Skeletonizer::new(p.clone()))?
+            .map_err(errors::core)?;
         Ok(Self { inner })
     }
 
@@ -83,32 +84,47 @@ impl PySkeletonizer {
             }
         }
         let progress = progress.map(Bound::unbind);
-        // The observer runs without the GIL held; it re-attaches to check for Ctrl-C
-        // and call the callback, and parks any exception for `errors::to_py`.
+        // The run goes on a helper thread while this one watches for Ctrl-C (see
+        // `watch`). The observer runs there without the GIL; it re-attaches only to
+        // call the callback, and parks its exception for `errors::to_py`.
         let mut pending: Option<PyErr> = None;
+        let mut signal: Option<PyErr> = None;
         let mut observer = |p: &Progress| -> bool {
-            Python::attach(|py| {
-                let step = py.check_signals().and_then(|()| match &progress {
-                    Some(cb) => cb.call1(py, (p.stage, p.iteration, p.nodes, p.measure)).map(drop),
-                    None => Ok(()),
-                });
-                step.map_err(|e| pending = Some(e)).is_ok()
-            })
+            match &progress {
+                Some(cb) => Python::attach(|py| {
+                    let step = cb.call1(py, (p.stage, p.iteration, p.nodes, p.measure)).map(drop);
+                    step.map_err(|e| pending = Some(e)).is_ok()
+                }),
+                None => true,
+            }
         };
-        let skeleton = run_any(py, &self.inner, mask, spacing, &mut observer);
-        let skeleton = skeleton?.map_err(|e| errors::to_py(e, pending.take()))?;
+        // `max_memory` left at "auto": what this process may still use, read now.
+        let limited;
+        let skeletonizer = match self.inner.params().max_memory {
+            Some(_) => &self.inner,
+            None => {
+                let mut params = self.inner.params().clone();
+                params.max_memory = Some(vesselflow_io::budget::usable_memory().unwrap_or(0));
+                limited = vesselflow::Skeletonizer::new(params).map_err(errors::core)?;
+                &limited
+            }
+        };
+        let skeleton = run_any(py, skeletonizer, mask, spacing, &mut observer, &mut signal);
+        let skeleton = skeleton?.map_err(|e| errors::to_py(e, pending.take().or(signal.take())))?;
         skeleton_to_py(py, skeleton)
     }
 }
 
 /// Check that `mask` is a 3-D bool or integer array and run on it with its own element
-/// type. The outer `PyResult` holds mask errors, the inner one the core's.
+/// type. The outer `PyResult` holds mask errors (and caught panics), the inner one the
+/// core's; `signal` receives the exception of a signal handler that stopped the run.
 fn run_any(
     py: Python<'_>,
     sk: &vesselflow::Skeletonizer,
     mask: &Bound<'_, PyAny>,
     spacing: [f64; 3],
     observer: &mut (dyn FnMut(&Progress) -> bool + Send),
+    signal: &mut Option<PyErr>,
 ) -> PyResult<vesselflow::Result<Skeleton>> {
     let array = mask.cast::<PyUntypedArray>().map_err(|_| {
         PyTypeError::new_err(format!(
@@ -124,23 +140,23 @@ fn run_any(
     if dtype.is_native_byteorder() == Some(false) {
         let native = dtype.call_method1("newbyteorder", ("=",))?;
         let swapped = array.call_method1("astype", (native,))?;
-        return run_any(py, sk, &swapped, spacing, observer);
+        return run_any(py, sk, &swapped, spacing, observer, signal);
     }
     match (dtype.kind(), dtype.itemsize()) {
         // A NumPy bool byte may hold any value (`uint8_array.view(bool)`), which a Rust
         // `bool` must not: read bool masks through a uint8 view (no copy).
         (b'b', 1) => {
             let bytes = array.call_method1("view", ("u1",))?;
-            run_typed::<u8>(py, sk, &bytes, spacing, observer)
+            run_typed::<u8>(py, sk, &bytes, spacing, observer, signal)
         }
-        (b'i', 1) => run_typed::<i8>(py, sk, mask, spacing, observer),
-        (b'i', 2) => run_typed::<i16>(py, sk, mask, spacing, observer),
-        (b'i', 4) => run_typed::<i32>(py, sk, mask, spacing, observer),
-        (b'i', 8) => run_typed::<i64>(py, sk, mask, spacing, observer),
-        (b'u', 1) => run_typed::<u8>(py, sk, mask, spacing, observer),
-        (b'u', 2) => run_typed::<u16>(py, sk, mask, spacing, observer),
-        (b'u', 4) => run_typed::<u32>(py, sk, mask, spacing, observer),
-        (b'u', 8) => run_typed::<u64>(py, sk, mask, spacing, observer),
+        (b'i', 1) => run_typed::<i8>(py, sk, mask, spacing, observer, signal),
+        (b'i', 2) => run_typed::<i16>(py, sk, mask, spacing, observer, signal),
+        (b'i', 4) => run_typed::<i32>(py, sk, mask, spacing, observer, signal),
+        (b'i', 8) => run_typed::<i64>(py, sk, mask, spacing, observer, signal),
+        (b'u', 1) => run_typed::<u8>(py, sk, mask, spacing, observer, signal),
+        (b'u', 2) => run_typed::<u16>(py, sk, mask, spacing, observer, signal),
+        (b'u', 4) => run_typed::<u32>(py, sk, mask, spacing, observer, signal),
+        (b'u', 8) => run_typed::<u64>(py, sk, mask, spacing, observer, signal),
         _ => Err(unsupported_dtype(&dtype)),
     }
 }
@@ -151,18 +167,25 @@ fn unsupported_dtype(dtype: &Bound<'_, PyArrayDescr>) -> PyErr {
     ))
 }
 
-/// Borrow the array read-only (any strides, no copy) and run with the GIL released.
+/// Borrow the array read-only (any strides, no copy) and run with the GIL released,
+/// watching for Ctrl-C ([`watch::watched`]); a panic becomes a `RuntimeError`.
 fn run_typed<T: Voxel + Element>(
     py: Python<'_>,
     sk: &vesselflow::Skeletonizer,
     mask: &Bound<'_, PyAny>,
     spacing: [f64; 3],
     observer: &mut (dyn FnMut(&Progress) -> bool + Send),
+    signal: &mut Option<PyErr>,
 ) -> PyResult<vesselflow::Result<Skeleton>> {
     let array = mask.cast::<PyArray3<T>>().map_err(|_| PyRuntimeError::new_err("mask dtype dispatch failed"))?;
     let readonly = array.try_readonly().map_err(|e| PyValueError::new_err(format!("mask cannot be read: {e}")))?;
     let view = readonly.as_array();
-    Ok(py.detach(|| sk.run(view, spacing, observer)))
+    let context =
+        || format!("input shape {:?}, dtype {}, spacing {spacing:?}", view.shape(), std::any::type_name::<T>());
+    let (result, pending) =
+        watch::watched(py, |stop| errors::no_panic(context, || sk.run_with_stop(view, spacing, stop, observer)));
+    *signal = pending;
+    result
 }
 
 /// `(positions (N, 3) float64, radii (N,) float64, edges (E, 2) int64, info dict)`.

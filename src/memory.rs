@@ -1,0 +1,266 @@
+//! The run's peak memory, estimated from the mask before any heavy stage, and the
+//! `max_memory` guard (not in METHOD.md).
+//!
+//! # The model
+//!
+//! The estimate is the peak of the memory the run allocates *beyond its input mask*
+//! (what `benches/performance.py` reports as "peak RSS over mask"). It is the largest
+//! of the stages' own peaks, each a sum of terms that scale with the foreground count
+//! `N`, with the box's rows (`n0 * n1`) and planes (`n1 * n2`), or with the threads:
+//!
+//! | stage | what is alive at its peak | bytes |
+//! |---|---|---|
+//! | count | row offsets of the foreground | `8 n0 n1` |
+//! | edt | row offsets; the EDT at the `N` foreground voxels (`f32`); one plane of run lengths (`u32`); per thread a plane buffer (`f32`, resident only where written) and envelope scratch | `8 n0 n1 + 4 N + 4 n1 n2 + T (4 min(n1 n2, N) + 40 max(n1, n2))` |
+//! | grid | the EDT; the foreground rows (`8 n0 n1 + 4 N`); per node its row, base-neighbour slots, degree, CSR, union-find, positions, radii, components | `8 n0 n1 + GRID[c] N` |
+//! | contract | the node graph (CSR, positions, radii, components); skeletal flags; l2-norm and medial Laplacians, then the normal matrix `M` (about 2-hop sparsity: 25 entries a row at 6-connectivity, 125 at 26) and the conjugate-gradient vectors | `CONTRACT[c] N` |
+//!
+//! `CONTRACT[c]` (bytes per node at connectivity `c`) is measured: the peak RSS of
+//! the `vesselflow` program minus the mask's bytes and minus a run on a one-voxel
+//! mask, at 2 threads, on the synthetic beds at 128³, 256³ and 512³ (236–249 B per
+//! foreground voxel at 6-connectivity), `damseh_synth2` (264), two two-photon stacks
+//! (264, 298), two small synthetic trees (289, 326), the 128³ bed inside a 300³ and a
+//! 512³ box (240, 252), and at 18 and 26 (589, 718–763); the estimate lies within
+//! 0.88–1.24x of all of them (`benches/performance.py` prints it next to its
+//! per-stage peaks). `GRID[c]` is the grid stage's 256³ figure (170 B, of which 81
+//! were the old box-sized EDT), scaled by the base-neighbour slots at 18 and 26; it
+//! stays below the contraction. Later stages (refinement, output) work on the
+//! contracted graph, a few percent of `N`, and never set the peak. A fixed [`BASE`]
+//! covers the allocator's arenas and the worker threads.
+//!
+//! The estimate is a model, not a bound: a mask whose vessels are much thinner than
+//! the benchmark's (few interior voxels) has fewer matrix entries per node and needs
+//! less; one at 26-connectivity with thick vessels needs about what it says.
+
+use crate::error::{Error, Result};
+use crate::params::Connectivity;
+use rayon::prelude::*;
+
+/// Fixed bytes of a run beyond its arrays (allocator arenas, the pool's threads), as
+/// measured against a run on a one-voxel mask.
+pub const BASE: u64 = 512 << 10;
+
+/// Bytes per foreground voxel of the grid stage's own arrays (after the EDT), by
+/// connectivity 6, 18, 26.
+pub const GRID: [u64; 3] = [100, 160, 240];
+
+/// Bytes per foreground voxel at the contraction's peak, by connectivity 6, 18, 26.
+pub const CONTRACT: [u64; 3] = [260, 620, 790];
+
+/// The memory a run needs, stage by stage (bytes, beyond the input mask).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Estimate {
+    pub edt: u64,
+    pub grid: u64,
+    pub contract: u64,
+}
+
+impl Estimate {
+    /// The run's peak: the largest stage, plus [`BASE`].
+    pub fn peak(&self) -> u64 {
+        BASE + self.edt.max(self.grid).max(self.contract)
+    }
+}
+
+fn index(connectivity: Connectivity) -> usize {
+    match connectivity {
+        Connectivity::Six => 0,
+        Connectivity::Eighteen => 1,
+        Connectivity::TwentySix => 2,
+    }
+}
+
+/// Estimate the memory of a run on a mask of `shape` with `foreground` voxels (see the
+/// module for the model). Needs nothing but these counts, so it can run right after
+/// the foreground is counted, before the distance transform.
+///
+/// ```
+/// use vesselflow::memory::estimate;
+/// use vesselflow::params::Connectivity;
+/// let dense = estimate([256; 3], 839_095, Connectivity::Six, 2).peak();
+/// let sparse = estimate([256; 3], 256, Connectivity::Six, 2).peak();
+/// assert!(dense > 100 * sparse);
+/// ```
+pub fn estimate(shape: [usize; 3], foreground: usize, connectivity: Connectivity, threads: usize) -> Estimate {
+    let [n0, n1, n2] = shape.map(|n| n as u64);
+    let n = foreground as u64;
+    let threads = threads.max(1) as u64;
+    let rows = 8 * (n0 * n1 + 1);
+    let plane = n1 * n2;
+    // The per-thread plane buffers are zeroed lazily by the system: only the pages
+    // holding foreground voxels become resident.
+    let edt = rows + 4 * n + 4 * plane + threads * (4 * plane.min(n + 1024) + 40 * n1.max(n2));
+    let c = index(connectivity);
+    Estimate { edt, grid: rows + 4 * n + GRID[c] * n, contract: CONTRACT[c] * n }
+}
+
+/// Refuse a run whose estimated `peak` exceeds `max_memory` (bytes; 0 = no limit).
+pub fn check(peak: u64, max_memory: u64) -> Result<()> {
+    if max_memory > 0 && peak > max_memory {
+        Err(Error::OutOfMemory { needed: peak, allowed: max_memory })
+    } else {
+        Ok(())
+    }
+}
+
+/// `bytes` in the largest binary unit that keeps it at or above 1 (`1.5 GiB`).
+pub fn format_bytes(bytes: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut x = bytes as f64;
+    let mut u = 0;
+    while x >= 1024.0 && u + 1 < UNITS.len() {
+        x /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{bytes} B")
+    } else {
+        format!("{x:.1} {}", UNITS[u])
+    }
+}
+
+/// `1.5 GiB (1610612736 bytes)`, or `1000 B` below a KiB.
+fn exact_bytes(bytes: u64) -> String {
+    if bytes < 1024 {
+        format_bytes(bytes)
+    } else {
+        format!("{} ({bytes} bytes)", format_bytes(bytes))
+    }
+}
+
+/// The message of [`Error::OutOfMemory`].
+pub fn out_of_memory_message(needed: u64, allowed: u64) -> String {
+    if allowed == 0 {
+        format!(
+            "out of memory: an allocation of {} ({needed} bytes) failed; use a chunked run \
+             (vesselflow.distributed) or a machine with more memory",
+            format_bytes(needed)
+        )
+    } else {
+        format!(
+            "out of memory: this run needs about {} but max_memory allows {}; use a chunked run \
+             (vesselflow.distributed) or raise max_memory=",
+            exact_bytes(needed),
+            exact_bytes(allowed)
+        )
+    }
+}
+
+/// Parse a byte count: an integer number of bytes, or a number with a unit (`"8GB"`,
+/// `"512MiB"`, `"1.5 G"`; `k`/`M`/`G`/`T` alone and with `B` are powers of 1000, with
+/// `iB` powers of 1024; case-insensitive).
+pub fn parse_bytes(text: &str) -> Option<u64> {
+    let t = text.trim();
+    let split = t.find(|ch: char| !(ch.is_ascii_digit() || ch == '.')).unwrap_or(t.len());
+    let (number, unit) = (t[..split].trim(), t[split..].trim().to_ascii_lowercase());
+    let x: f64 = number.parse().ok()?;
+    let scale: f64 = match unit.as_str() {
+        "" | "b" => 1.0,
+        "k" | "kb" => 1e3,
+        "m" | "mb" => 1e6,
+        "g" | "gb" => 1e9,
+        "t" | "tb" => 1e12,
+        "kib" => 1024.0,
+        "mib" => 1024f64.powi(2),
+        "gib" => 1024f64.powi(3),
+        "tib" => 1024f64.powi(4),
+        _ => return None,
+    };
+    let bytes = (x * scale).round();
+    (x.is_finite() && bytes < u64::MAX as f64).then_some(bytes as u64)
+}
+
+/// `n` copies of `value`, or [`Error::OutOfMemory`] if the allocation fails: for the
+/// input-sized arrays, so that a run too large for the machine is refused, not
+/// aborted. Written in parallel, so each page is first touched by a write (see
+/// [`crate::grid::filled`]).
+pub fn try_filled<T: Copy + Send + Sync>(n: usize, value: T) -> Result<Vec<T>> {
+    let mut v = try_with_capacity(n)?;
+    v.par_extend((0..n).into_par_iter().map(|_| value));
+    Ok(v)
+}
+
+/// An empty vector with room for `n` values, or [`Error::OutOfMemory`].
+pub fn try_with_capacity<T>(n: usize) -> Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(n).map_err(|_| Error::OutOfMemory {
+        needed: (n as u64).saturating_mul(std::mem::size_of::<T>() as u64),
+        allowed: 0,
+    })?;
+    Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn byte_counts_parse_with_units() {
+        assert_eq!(parse_bytes("8GB"), Some(8_000_000_000));
+        assert_eq!(parse_bytes("512MiB"), Some(512 << 20));
+        assert_eq!(parse_bytes("1KB"), Some(1000));
+        assert_eq!(parse_bytes(" 1.5 gib "), Some(3 << 29));
+        assert_eq!(parse_bytes("123"), Some(123));
+        assert_eq!(parse_bytes("0"), Some(0));
+        for bad in ["", "GB", "8 parsecs", "-1GB", "1e3", "nan"] {
+            assert_eq!(parse_bytes(bad), None, "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_guard_names_both_numbers() {
+        assert!(check(1000, 0).is_ok());
+        assert!(check(1000, 1000).is_ok());
+        let e = check(5 << 30, 1 << 30).unwrap_err();
+        assert_eq!(e, Error::OutOfMemory { needed: 5 << 30, allowed: 1 << 30 });
+        let m = e.to_string();
+        assert!(m.contains("5.0 GiB") && m.contains("1.0 GiB"), "{m}");
+        assert!(m.contains("max_memory=") && m.contains("vesselflow.distributed"), "{m}");
+    }
+
+    #[test]
+    fn the_estimate_follows_the_foreground_not_the_box() {
+        // A 300-voxel line in a 300³ box against the same line in a tight box.
+        let line = estimate([300; 3], 300, Connectivity::Six, 2).peak() - BASE;
+        let tight = estimate([1, 1, 300], 300, Connectivity::Six, 2).peak() - BASE;
+        assert!(line < 2 << 20, "{line}");
+        assert!(tight < line);
+        // Dense: proportional to N, and more at higher connectivity.
+        let six = estimate([256; 3], 839_095, Connectivity::Six, 2).peak();
+        let big = estimate([512; 3], 8 * 839_095, Connectivity::Six, 2).peak();
+        assert!((7.5..8.5).contains(&((big - BASE) as f64 / (six - BASE) as f64)));
+        assert!(estimate([256; 3], 839_095, Connectivity::TwentySix, 2).peak() > 2 * six);
+    }
+
+    #[test]
+    fn a_run_over_max_memory_is_refused_and_a_generous_limit_changes_nothing() {
+        use crate::{shapes, Params, Skeletonizer};
+        let mask = shapes::cylinder([40, 21, 21], 4.0);
+        let run = |max_memory| {
+            let p = Params { max_memory, ..Params::default() };
+            Skeletonizer::new(p).unwrap().run(mask.view(), [1.0; 3], &mut |_| true)
+        };
+        let n = mask.iter().filter(|&&v| v != 0).count();
+        let need = estimate([40, 21, 21], n, Connectivity::Six, rayon::current_num_threads()).peak();
+        match run(Some(1000)) {
+            Err(Error::OutOfMemory { needed, allowed: 1000 }) => assert!(needed >= BASE),
+            other => panic!("expected OutOfMemory, got {other:?}"),
+        }
+        // The guard compares the estimate itself: exactly at it the run goes ahead.
+        assert!(run(Some(need)).is_ok());
+        assert!(matches!(run(Some(need - 1)), Err(Error::OutOfMemory { .. })));
+        let free = run(None).unwrap();
+        for limited in [run(Some(1 << 40)).unwrap(), run(Some(0)).unwrap()] {
+            assert_eq!(limited.positions, free.positions);
+            assert_eq!(limited.radii, free.radii);
+            assert_eq!(limited.edges, free.edges);
+        }
+    }
+
+    #[test]
+    fn failed_allocations_are_errors() {
+        let e = try_with_capacity::<u64>(usize::MAX / 4).unwrap_err();
+        assert!(matches!(e, Error::OutOfMemory { allowed: 0, .. }), "{e}");
+        assert_eq!(try_filled(5, 7u32).unwrap(), vec![7; 5]);
+    }
+}
