@@ -78,6 +78,15 @@ pub fn requested() -> bool {
     CURRENT.with(|c| c.borrow().as_ref().is_some_and(Stop::is_requested))
 }
 
+/// [`Error::Interrupted`] if [`requested`], for stages that can return at once.
+pub fn checkpoint() -> Result<()> {
+    if requested() {
+        Err(Error::Interrupted)
+    } else {
+        Ok(())
+    }
+}
+
 /// [`requested`], counting one conjugate-gradient iteration: called once before
 /// every iteration, it returns `true` when the solve should stop.
 pub fn cg_iteration_stops() -> bool {

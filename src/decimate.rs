@@ -68,6 +68,8 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
         .collect::<Result<_>>()?;
     let mut order = keys;
     order.par_sort_unstable();
+    // Each pass takes up to a second on the largest graphs.
+    crate::cancel::checkpoint()?;
     // Cells, numbered in key order.
     let mut cell = vec![0u32; n];
     let mut cells = 0u32;
@@ -95,6 +97,7 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
         })
         .collect();
     joins.par_sort_unstable();
+    crate::cancel::checkpoint()?;
     let mut partner: Vec<u32> = (0..cells as u32).collect();
     for &(_, a, b) in &joins {
         if partner[a as usize] == a && partner[b as usize] == b {
@@ -115,6 +118,7 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
     let clusters = clusters as usize;
     let map: Vec<u32> = cell.iter().map(|&k| cluster_of_cell[k as usize]).collect();
     let (start, members) = members_by_cluster(&map, clusters);
+    crate::cancel::checkpoint()?;
     let merged: Vec<([f64; 3], f64, u32)> = (0..clusters)
         .into_par_iter()
         .map(|k| {

@@ -132,14 +132,15 @@ fn exact_bytes(bytes: u64) -> String {
 pub fn out_of_memory_message(needed: u64, allowed: u64) -> String {
     if allowed == 0 {
         format!(
-            "out of memory: an allocation of {} ({needed} bytes) failed; use a chunked run \
-             (vesselflow.distributed) or a machine with more memory",
+            "out of memory: an allocation of {} ({needed} bytes) failed; crop the volume to the \
+             vessels, split it into blocks or use a machine with more memory",
             format_bytes(needed)
         )
     } else {
         format!(
-            "out of memory: this run needs about {} but max_memory allows {}; use a chunked run \
-             (vesselflow.distributed) or raise max_memory=",
+            "out of memory: this run needs about {} but max_memory allows {}; crop the volume to \
+             the vessels, split it into blocks, or raise max_memory= if \
+             more is free",
             exact_bytes(needed),
             exact_bytes(allowed)
         )
@@ -215,7 +216,7 @@ mod tests {
         assert_eq!(e, Error::OutOfMemory { needed: 5 << 30, allowed: 1 << 30 });
         let m = e.to_string();
         assert!(m.contains("5.0 GiB") && m.contains("1.0 GiB"), "{m}");
-        assert!(m.contains("max_memory=") && m.contains("vesselflow.distributed"), "{m}");
+        assert!(m.contains("max_memory=") && m.contains("crop the volume"), "{m}");
     }
 
     #[test]

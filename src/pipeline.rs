@@ -97,21 +97,21 @@ pub fn contract_step(
     clock: &mut StageClock,
 ) -> Result<(NodeGraph, SolveStats)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
-    interrupted()?;
+    cancel::checkpoint()?;
     let order = axes.map(|axes| clock.time("solve", || slab_order(&g.positions, c, axes)));
-    interrupted()?;
+    cancel::checkpoint()?;
     // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
     // `M` itself, and the conjugate-gradient vectors are allocated after.
     let m = {
         let (ln, lm) = clock.time("laplacian", || {
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
-        interrupted()?;
+        cancel::checkpoint()?;
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
         clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref()))
     };
     // The assembly stops early too (a partial matrix).
-    interrupted()?;
+    cancel::checkpoint()?;
     return_free_memory();
     let start = match &order {
         Some(order) => {
@@ -124,7 +124,7 @@ pub fn contract_step(
     let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, p.cg_tol, p.cg_max_iterations));
     drop(m);
     // The solve stops early when the run is asked to stop: its result is partial.
-    interrupted()?;
+    cancel::checkpoint()?;
     return_free_memory();
     g.positions = match &order {
         Some(order) => clock.time("solve", || {
@@ -138,15 +138,6 @@ pub fn contract_step(
     };
     let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
     Ok((next, stats))
-}
-
-/// [`Error::Interrupted`] if the run this thread works for was asked to stop.
-fn interrupted() -> Result<()> {
-    if cancel::requested() {
-        Err(Error::Interrupted)
-    } else {
-        Ok(())
-    }
 }
 
 /// Hand the pages of freed memory back to the system. glibc keeps freed blocks below
