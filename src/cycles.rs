@@ -242,16 +242,21 @@ pub fn short_cycle_area(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> f6
 }
 
 /// One refinement move (eq. 11): every node of a kept cycle (area below
-/// `max_area`) steps halfway to the centroid of one kept cycle through it — the
-/// one with the fewest nodes, then the smallest area, then the first closing edge.
-/// Returns the new positions and which nodes moved, or `None` if no cycle is kept.
+/// `max_area`, and not a `loop_of_the_mask`) steps halfway to the centroid of one
+/// kept cycle through it — the one with the fewest nodes, then the smallest area,
+/// then the first closing edge. Returns the new positions and which nodes moved, or
+/// `None` if no cycle is kept.
 pub fn refine_step(
     g: &Csr,
     positions: &[[f64; 3]],
     max_nodes: usize,
     max_area: f64,
+    loop_of_the_mask: &(dyn Fn(&Cycle) -> bool + Sync),
 ) -> Option<(Vec<[f64; 3]>, Vec<bool>, usize)> {
-    let kept: Vec<Cycle> = short_cycles(g, positions, max_nodes).into_iter().filter(|c| c.area < max_area).collect();
+    let kept: Vec<Cycle> = short_cycles(g, positions, max_nodes)
+        .into_iter()
+        .filter(|c| c.area < max_area && !loop_of_the_mask(c))
+        .collect();
     if kept.is_empty() {
         return None;
     }
@@ -376,12 +381,12 @@ mod tests {
         // Triangle 0-1-2 plus a tail 2-3.
         let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (1, 2), (2, 3)]);
         let p = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 5.0, 0.0]];
-        let (q, moved, kept) = refine_step(&g, &p, 10, 50.0).unwrap();
+        let (q, moved, kept) = refine_step(&g, &p, 10, 50.0, &|_| false).unwrap();
         assert_eq!(kept, 1);
         assert_eq!(moved, vec![true, true, true, false]);
         let third = 1.0 / 3.0;
         assert!((q[1][0] - 0.5 * (1.0 + third)).abs() < 1e-12);
         assert_eq!(q[3], p[3]);
-        assert!(refine_step(&g, &p, 10, 0.1).is_none());
+        assert!(refine_step(&g, &p, 10, 0.1, &|_| false).is_none());
     }
 }

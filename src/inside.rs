@@ -13,6 +13,7 @@
 //! output check reports it). Nodes on foreground voxels do not move, so graphs whose
 //! nodes were all inside are unchanged bit for bit.
 
+use crate::cycles::Cycle;
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -91,6 +92,30 @@ pub fn keep_inside<T: Voxel>(positions: &[[f64; 3]], mask: ArrayView3<'_, T>, sp
         .collect()
 }
 
+/// True if the cycle is a loop of the mask and not a knot of the flow: its centroid
+/// lies on a background voxel (or outside the array), so the polygon runs around a
+/// hole of the mask, and the hole is at least as wide as the vessels that form it.
+/// With `r` the mean vessel radius of the cycle's nodes (their EDT less `shift`, as
+/// output), a loop around a hole of radius `h` has a centreline of radius `h + r`, so
+/// `h ≥ r` means an area of at least `π (2 r)²`. Smaller holes are what bubbles of
+/// segmentation noise make beside a vessel; refinement collapses those as before.
+pub fn loop_of_the_mask<T: Voxel>(
+    cycle: &Cycle,
+    positions: &[[f64; 3]],
+    radii: &[f64],
+    shift: f64,
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
+) -> bool {
+    let k = cycle.nodes.len() as f64;
+    let centroid: [f64; 3] =
+        std::array::from_fn(|d| cycle.nodes.iter().map(|&i| positions[i as usize][d]).sum::<f64>() / k);
+    let r = cycle.nodes.iter().map(|&i| (radii[i as usize] - shift).max(0.0)).sum::<f64>() / k;
+    let (n0, n1, n2) = mask.dim();
+    let hole = voxel_of(centroid, spacing, [n0, n1, n2]).is_none_or(|v| !mask[v].is_set());
+    hole && cycle.area >= std::f64::consts::PI * (2.0 * r).powi(2)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -109,6 +134,31 @@ mod tests {
             }
         }
         best.1
+    }
+
+    /// A square loop of one-voxel lines around a 3×3 hole is a loop of the mask; a
+    /// 2×2 polygon around a one-voxel bubble inside a thick vessel is not, nor is a
+    /// polygon whose centroid lies in the vessel.
+    #[test]
+    fn loops_around_holes_wider_than_their_vessels_are_loops_of_the_mask() {
+        let square =
+            |o: f64, side: f64| vec![[2.0, o, o], [2.0, o + side, o], [2.0, o + side, o + side], [2.0, o, o + side]];
+        let cycle =
+            |p: &[[f64; 3]]| Cycle { nodes: vec![0, 1, 2, 3], area: crate::cycles::vector_area(&[0, 1, 2, 3], p) };
+        // Lines along axes 1 and 2 at 0 and 4 in plane 2: a hole at 1..=3.
+        let ring = Array3::from_shape_fn((5, 5, 5), |(i, j, k)| u8::from(i == 2 && (j % 4 == 0 || k % 4 == 0)));
+        let p = square(0.0, 4.0);
+        assert!(loop_of_the_mask(&cycle(&p), &p, &[1.0; 4], 0.5, ring.view(), [1.0; 3]));
+        // The same loop counted with radii of 2.5: the hole is narrower than the vessels.
+        assert!(!loop_of_the_mask(&cycle(&p), &p, &[3.0; 4], 0.5, ring.view(), [1.0; 3]));
+        // A bubble: a solid 5×9×9 block with one background voxel at its centre.
+        let mut block = Array3::<u8>::ones((5, 9, 9));
+        block[[2, 4, 4]] = 0;
+        let q = square(3.0, 2.0);
+        assert!(!loop_of_the_mask(&cycle(&q), &q, &[3.0; 4], 0.5, block.view(), [1.0; 3]));
+        // A knot of the flow: its centroid is on the vessel.
+        block[[2, 4, 4]] = 1;
+        assert!(!loop_of_the_mask(&cycle(&q), &q, &[0.6; 4], 0.5, block.view(), [1.0; 3]));
     }
 
     #[test]

@@ -2,13 +2,13 @@
 //! (§III-G) → output, with per-stage timings and a progress observer.
 
 use crate::cancel::{self, Stop};
-use crate::cycles::{refine_step, short_cycle_area};
+use crate::cycles::{refine_step, short_cycle_area, Cycle};
 use crate::decimate::{decimate, NodeGraph, CELL_LIMIT};
 use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled};
-use crate::inside::keep_inside;
+use crate::inside::{keep_inside, loop_of_the_mask};
 use crate::laplacian;
 use crate::memory;
 use crate::params::{AreaReference, Params, STALL_AREA};
@@ -314,10 +314,13 @@ impl Skeletonizer {
 
         // Refinement (§III-G).
         let max_area = p.refine_area * c * c;
+        let shift = p.radius_correction * c;
         info.refine_converged = false;
         while info.refine_iterations < p.max_refine_iterations {
-            let step = clock
-                .time("refine", || pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)));
+            let step = clock.time("refine", || {
+                let hole = |c: &Cycle| loop_of_the_mask(c, &g.positions, &g.radii, shift, mask, spacing);
+                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole))
+            });
             stop.check()?;
             let Some((positions, moved, kept)) = step else {
                 info.refine_converged = true;
@@ -333,8 +336,9 @@ impl Skeletonizer {
             report(observer, "refine", 0, g.positions.len(), 0.0)?;
         }
         if !info.refine_converged {
+            let hole = |c: &Cycle| loop_of_the_mask(c, &g.positions, &g.radii, shift, mask, spacing);
             info.refine_converged =
-                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area)).is_none();
+                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole)).is_none();
             stop.check()?;
         }
 
