@@ -191,10 +191,13 @@ fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<Stri
                 plot::check_output(path)?;
             }
             let skeletonizer = Skeletonizer::new(params)?;
-            let volume = match spacing {
-                Some(s) => vesselflow_io::read_volume_with_spacing(&input, s)?,
-                None => vesselflow_io::read_volume(&input)?,
+            // The reader checks what the file declares against the same budget as the run.
+            let limits = match skeletonizer.params().max_memory {
+                None => vesselflow_io::ReadLimits::for_this_process(),
+                Some(0) => vesselflow_io::ReadLimits::new(u64::MAX),
+                Some(bytes) => vesselflow_io::ReadLimits::new(bytes),
             };
+            let volume = vesselflow_io::read_volume_limited(&input, spacing, limits)?;
             let shape = volume.mask.shape();
             let mut reporter = Reporter::new(verbosity);
             reporter.line(&format!(

@@ -298,6 +298,16 @@ fn a_run_stopped_at_the_cap_says_so_even_when_quiet() {
 }
 
 #[test]
+fn max_memory_also_bounds_what_the_reader_may_allocate() {
+    let dir = TempDir::new().unwrap();
+    let input = cylinder_npy(dir.path()); // 40 x 21 x 21 = 17 640 voxels
+    let json = dir.path().join("tube.json");
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&json), "--max-memory", "10KB", "-q"]);
+    assert_error(&out, 1, "may be used");
+    assert!(!json.exists());
+}
+
+#[test]
 fn demo_prints_the_summary() {
     let dir = TempDir::new().unwrap();
     let output = dir.path().join("demo.graphml");
@@ -633,8 +643,9 @@ fn a_run_over_max_memory_is_refused_in_one_line_naming_both_numbers() {
     let dir = TempDir::new().unwrap();
     let input = cylinder_npy(dir.path());
     let output = dir.path().join("g.json");
-    let out = vesselflow(&["-q", "skeletonize", path_str(&input), "-o", path_str(&output), "--max-memory", "1KB"]);
-    assert_error(&out, 1, "max_memory allows 1000 B");
+    // Enough to read the 17 640-voxel mask, not to run on it.
+    let out = vesselflow(&["-q", "skeletonize", path_str(&input), "-o", path_str(&output), "--max-memory", "100KB"]);
+    assert_error(&out, 1, "max_memory allows 97.7 KiB (100000 bytes)");
     assert!(stderr(&out).contains("needs about"), "{}", stderr(&out));
     assert!(!output.exists());
     // A generous limit changes nothing; the file records the limit asked for.
