@@ -68,7 +68,7 @@ fn lattice_of_one_voxel_lines() {
     for (name, spacing) in [("lattice", [1.0; 3]), ("lattice, anisotropic", [2.0, 1.0, 0.7])] {
         let s = check(name, &mask, spacing);
         let rank = s.edges.len() + 1 - s.len();
-        assert!(rank >= 1216 * 95 / 100 && rank <= 1216, "{name}: {rank} of the lattice's 1216 loops");
+        assert!((1216 * 95 / 100..=1216).contains(&rank), "{name}: {rank} of the lattice's 1216 loops");
     }
 }
 
