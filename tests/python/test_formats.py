@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from graph_files import assert_same_graph
-
 from vesselflow import VesselGraph, load_graph
 from vesselflow.io import csv_edges_path
 
