@@ -13,6 +13,7 @@ __version__: str
 __all__ = [
     "Skeletonizer",
     "__version__",
+    "binarise",
     "cli_main",
     "memory_estimate",
     "param_defaults",
@@ -30,10 +31,17 @@ class Skeletonizer:
     def run(
         self,
         mask: NDArray[Any],
-        spacing: Sequence[float] = (1.0, 1.0, 1.0),
+        spacing: Sequence[float] | float = (1.0, 1.0, 1.0),
         progress: Callable[[str, int, int, float], object] | None = None,
+        threshold: float | None = None,
+        label: float | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], dict[str, Any]]:
         """Returns ``(positions (N, 3), radii (N,), edges (E, 2) int64, info)``."""
+
+def binarise(
+    data: NDArray[Any], threshold: float | None = None, label: float | None = None
+) -> NDArray[np.bool_]:
+    """The input rule: ``data`` if bool, else a new bool mask (``ValueError`` if not one)."""
 
 def memory_estimate(
     shape: tuple[int, int, int] | list[int],

@@ -149,9 +149,11 @@ class Skeletonizer:
     def run(
         self,
         mask: np.ndarray,
-        spacing: Sequence[float] = (1.0, 1.0, 1.0),
+        spacing: Sequence[float] | float = (1.0, 1.0, 1.0),
         progress: ProgressCallback | bool | None = None,
         *,
+        threshold: float | None = None,
+        label: float | None = None,
         prune_min_length_over_radius: float | None = None,
     ) -> VesselGraph:
         """Skeletonize one mask.
@@ -159,17 +161,26 @@ class Skeletonizer:
         Parameters
         ----------
         mask : numpy.ndarray
-            3-D array of bool or integer dtype, non-zero = vessel, any memory order
-            and strides (read without a copy). Binarise intensity images first.
-        spacing : sequence of 3 floats
-            Voxel size along axes 0, 1, 2 in physical units; positions and radii of
-            the result are in the same units.
+            3-D array, any memory order and strides. It is made a mask by the input
+            rule that :func:`load_volume` and the command line apply too: bool (read
+            without a copy), integers with zero and at most one other value, or floats
+            that are all 0 or 1 are binary (non-zero = vessel); anything else (a label
+            image, a probability map, NaN) is a ``ValueError`` naming the values found,
+            unless ``threshold`` or ``label`` says how to binarise it.
+        spacing : sequence of 3 floats, or a float
+            Voxel size along axes 0, 1, 2 in physical units (one number: the same on
+            every axis); positions and radii of the result are in the same units.
         progress : callable or bool, optional
             ``True`` shows a tqdm bar on stderr (contraction iterations out of
             ``max_iterations``, with the stage, nodes left and the convergence
             measure, which reaches 1 when the run stops). A callable is called as
             ``progress(stage, iteration, nodes, measure)`` after every stage and
             iteration; an exception it raises stops the run and propagates.
+        threshold : float, optional
+            Vessel where ``mask > threshold`` (e.g. a probability map).
+        label : float, optional
+            Vessel where ``mask == label`` (one label of a label image); not with
+            ``threshold``.
         prune_min_length_over_radius : float, optional
             If given, finish with :meth:`VesselGraph.prune` at this ratio: terminal
             spurs shorter than this many radii of the vessel they join are removed.
@@ -186,7 +197,9 @@ class Skeletonizer:
         warning on the ``vesselflow`` logger.
         """
         with _progress_callback(progress, int(self.params["max_iterations"])) as callback:
-            positions, radii, edges, info = self._core.run(mask, spacing, callback)
+            positions, radii, edges, info = self._core.run(
+                mask, spacing, callback, threshold=threshold, label=label
+            )
         if info["foreground_voxels"] == 0:
             warnings.warn("the mask is empty: the graph has no nodes", UserWarning, stacklevel=2)
         if not (info["converged"] or info["stalled"]):
@@ -200,7 +213,7 @@ class Skeletonizer:
             positions=positions,
             radii=radii,
             edges=edges,
-            spacing=np.asarray(spacing, dtype=np.float64),
+            spacing=np.broadcast_to(np.asarray(spacing, dtype=np.float64), 3),
             info=info,
             params=self.params,
         )
@@ -240,17 +253,25 @@ def _progress_callback(
 
 def skeletonize(
     mask: np.ndarray,
-    spacing: Sequence[float] = (1.0, 1.0, 1.0),
+    spacing: Sequence[float] | float = (1.0, 1.0, 1.0),
     *,
     progress: ProgressCallback | bool | None = None,
+    threshold: float | None = None,
+    label: float | None = None,
     prune_min_length_over_radius: float | None = None,
     **params: Any,
 ) -> VesselGraph:
     """Skeletonize ``mask`` in one call: ``Skeletonizer(**params).run(mask, spacing)``.
 
     See :class:`Skeletonizer` for the parameters and :meth:`Skeletonizer.run` for
-    ``mask``, ``spacing``, ``progress`` and ``prune_min_length_over_radius``.
+    ``mask``, ``spacing``, ``progress``, ``threshold``, ``label`` and
+    ``prune_min_length_over_radius``.
     """
     return Skeletonizer(**params).run(
-        mask, spacing, progress, prune_min_length_over_radius=prune_min_length_over_radius
+        mask,
+        spacing,
+        progress,
+        threshold=threshold,
+        label=label,
+        prune_min_length_over_radius=prune_min_length_over_radius,
     )

@@ -11,20 +11,19 @@ OME files as a rule; vesselflow keeps whatever unit the file uses).
 
 from __future__ import annotations
 
-import logging
 import math
 import os
 import xml.etree.ElementTree as ElementTree
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any, Callable
 
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
+from vesselflow import _core
 from vesselflow.io import import_extra
-
-logger = logging.getLogger(__name__)
 
 Spacing = tuple[float, float, float]
 """Voxel size along array axes 0, 1, 2, in the file's physical units."""
@@ -159,6 +158,7 @@ def load_volume(
     threshold: float | None = None,
     label: float | None = None,
     max_memory: int | None = None,
+    spacing: Sequence[float] | float | None = None,
 ) -> tuple[NDArray[np.bool_], Spacing]:
     """Read a 3-D mask and its voxel spacing (physical units per voxel, axes 0, 1, 2).
 
@@ -192,11 +192,15 @@ def load_volume(
         (given in x, y, z order) is reversed to match.
 
     Axes of length 1 beyond three (a NIfTI time axis, OME-Zarr ``t`` and ``c``) are
-    dropped. A boolean array is the mask as is. Other data count as binary when
-    integer data hold zero and at most one other value, or float data hold only 0 and 1;
-    the mask is then the non-zero voxels. Anything else (a probability map, a label
-    image) needs ``threshold`` (mask = data > threshold) or ``label`` (mask = data ==
-    label), in the data's own values.
+    dropped. The data become a mask by the input rule that ``skeletonize`` and the
+    command line apply too: a boolean array is the mask as is; integer data holding zero
+    and at most one other value, or float data holding only 0 and 1, are binary and the
+    mask is their non-zero voxels. Anything else (a probability map, a label image, NaN)
+    needs ``threshold`` (mask = data > threshold) or ``label`` (mask = data == label), in
+    the data's own values; passing both is a ``ValueError``.
+
+    ``spacing`` (3 numbers, or one for every axis) replaces the file's spacing; it is
+    needed for a file whose spacing is not finite numbers > 0, which is an error.
 
     Before reading the data, the size the file declares (array shape and data type,
     from its header) is checked against ``max_memory`` bytes, by default the memory
@@ -210,8 +214,9 @@ def load_volume(
     the volume needs and how much there is.
     """
     path = Path(path)
-    if threshold is not None and label is not None:
+    if threshold is not None and label is not None:  # before reading anything
         raise ValueError("pass threshold= or label=, not both")
+    given = None if spacing is None else _spacing_argument(spacing)
     reader = _READERS.get(_extension(path))
     if reader is None:
         supported = ", ".join(sorted(_READERS))
@@ -220,11 +225,11 @@ def load_volume(
         raise FileNotFoundError(f"{path}: no such file or directory")
     budget = _Budget(path, _available_memory() if max_memory is None else max_memory)
     try:
-        data, spacing = reader(path, key, budget)
+        data, file_spacing = reader(path, key, budget)
         data = np.asarray(data)
         if data.ndim != 3:
             raise VolumeError(f"{path}: expected a 3-D volume, got shape {data.shape}")
-        return _binarise(data, path, threshold, label), _check_spacing(spacing, path)
+        return _binarise(data, path, threshold, label), given or _check_spacing(file_spacing, path)
     except (FileNotFoundError, ModuleNotFoundError, VolumeError):
         raise
     except MemoryError as e:
@@ -244,45 +249,35 @@ def _extension(path: Path) -> str:
 def _binarise(
     data: NDArray[Any], path: Path, threshold: float | None, label: float | None
 ) -> NDArray[np.bool_]:
-    if threshold is not None:
-        return np.asarray(data > threshold)
-    if label is not None:
-        return np.asarray(data == label)
-    if data.dtype == np.bool_:
-        return data
-    advice = (
-        "pass threshold= (mask = data > threshold) or label= (mask = data == label) "
-        "to say how to binarise it"
-    )
-    if data.dtype.kind in "iu":
-        lo, hi = data.min(initial=0), data.max(initial=0)
-        # Binary: one value throughout, or zero and one other value (lo or hi).
-        if lo == hi or (
-            (lo == 0 or hi == 0) and np.count_nonzero(data == (hi or lo)) == np.count_nonzero(data)
-        ):
-            return np.asarray(data != 0)
-        raise VolumeError(
-            f"{path}: not a binary mask: {data.dtype} values from {lo} to {hi} "
-            f"with more than one non-zero value; {advice}"
-        )
-    if data.dtype.kind == "f":
-        if np.all((data == 0) | (data == 1)):
-            return np.asarray(data == 1)
-        raise VolumeError(
-            f"{path}: not a binary mask: {data.dtype} values other than 0 and 1 "
-            f"(from {np.nanmin(data)} to {np.nanmax(data)}); {advice}"
-        )
-    raise VolumeError(f"{path}: data of dtype {data.dtype} cannot be a mask")
+    """The input rule (``vesselflow._core.binarise``, shared with ``skeletonize`` and the
+    command line), its refusal naming the file."""
+    try:
+        return _core.binarise(data, threshold, label)
+    except (ValueError, TypeError) as e:
+        raise VolumeError(f"{path}: {e}") from e
+
+
+def _spacing_argument(spacing: Sequence[float] | float) -> Spacing:
+    """``spacing=`` as 3 floats (one number: the same on every axis); its values are
+    checked by the run, as for any spacing."""
+    values = np.asarray(spacing, dtype=np.float64).reshape(-1)
+    if values.size not in (1, 3):
+        raise ValueError(f"spacing={spacing!r} must be 3 numbers or one")
+    values = np.broadcast_to(values, 3)
+    return float(values[0]), float(values[1]), float(values[2])
 
 
 def _check_spacing(spacing: Any, path: Path) -> Spacing:
+    """The file's spacing, sign ignored; its range is checked by the run, as for any
+    spacing."""
     values = [abs(float(s)) for s in np.asarray(spacing, dtype=np.float64).reshape(-1)]
     if len(values) != 3:
         raise VolumeError(f"{path}: spacing {values} does not hold 3 numbers")
-    for axis, s in enumerate(values):
-        if not (np.isfinite(s) and s > 0):
-            logger.warning("%s: spacing of axis %d is %s; using 1", path, axis, s)
-            values[axis] = 1.0
+    if not all(np.isfinite(s) and s > 0 for s in values):
+        raise VolumeError(
+            f"{path}: the file's spacing {values} is not 3 finite numbers > 0; "
+            "pass spacing= to give the voxel size"
+        )
     return values[0], values[1], values[2]
 
 

@@ -12,6 +12,7 @@ use clap::{value_parser, Arg, ArgAction, ArgMatches, Command};
 use std::ffi::OsString;
 use std::path::PathBuf;
 use vesselflow::{Params, Value};
+use vesselflow_io::MaskRule;
 
 /// How much the program says on stderr.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -27,8 +28,19 @@ pub(crate) enum Verbosity {
 /// What the command line asks for.
 #[derive(Debug)]
 pub(crate) enum Task {
-    Skeletonize { input: PathBuf, output: PathBuf, spacing: Option<[f64; 3]>, plot: Option<PathBuf>, params: Params },
-    Demo { output: Option<PathBuf>, plot: Option<PathBuf>, params: Params },
+    Skeletonize {
+        input: PathBuf,
+        output: PathBuf,
+        spacing: Option<[f64; 3]>,
+        rule: MaskRule,
+        plot: Option<PathBuf>,
+        params: Params,
+    },
+    Demo {
+        output: Option<PathBuf>,
+        plot: Option<PathBuf>,
+        params: Params,
+    },
 }
 
 /// The parsed command line, or what to do instead of running.
@@ -88,13 +100,16 @@ fn plot_arg() -> Arg {
 /// The whole command-line interface.
 pub(crate) fn command() -> Command {
     let skeletonize = Command::new("skeletonize")
-        .about("Turn a binary vessel mask (.npy, .nii, .nii.gz, .tif; non-zero = vessel) into a centreline graph")
+        .about(
+            "Turn a binary vessel mask (.npy, .nii, .nii.gz, .tif) into a centreline graph; other images need \
+             --threshold or --label",
+        )
         .arg(
             Arg::new("input")
                 .value_name("INPUT")
                 .required(true)
                 .value_parser(value_parser!(PathBuf))
-                .help("Mask file: .npy (bool or integer), NIfTI .nii/.nii.gz (spacing from its header) or a TIFF stack .tif/.tiff (ImageJ spacing)"),
+                .help("Mask file (bool, integers 0 and one other value, or floats 0 and 1): .npy, NIfTI .nii/.nii.gz (spacing from its header) or a TIFF stack .tif/.tiff (ImageJ spacing)"),
         )
         .arg(output_arg(true))
         .arg(plot_arg())
@@ -106,6 +121,23 @@ pub(crate) fn command() -> Command {
                 .allow_negative_numbers(true)
                 .value_parser(value_parser!(f64))
                 .help("Voxel size along axes 0, 1, 2, replacing the file's [default: from the file, else 1 1 1]"),
+        )
+        .arg(
+            Arg::new("threshold")
+                .long("threshold")
+                .value_name("T")
+                .allow_negative_numbers(true)
+                .value_parser(value_parser!(f64))
+                .conflicts_with("label")
+                .help("Binarise an image that is not a mask (e.g. a probability map): vessel where value > T"),
+        )
+        .arg(
+            Arg::new("label")
+                .long("label")
+                .value_name("V")
+                .allow_negative_numbers(true)
+                .value_parser(value_parser!(f64))
+                .help("Take one label of a label image: vessel where value == V"),
         );
     let demo = Command::new("demo")
         .about("Run on the built-in synthetic volume (branching tubes with a loop) and print a summary")
@@ -159,6 +191,8 @@ where
             input: m.get_one::<PathBuf>("input").cloned().unwrap_or_default(),
             output: m.get_one::<PathBuf>("output").cloned().unwrap_or_default(),
             spacing: spacing(m)?,
+            rule: MaskRule::new(m.get_one::<f64>("threshold").copied(), m.get_one::<f64>("label").copied())
+                .map_err(Failure::Usage)?,
             plot: m.get_one::<PathBuf>("plot").cloned(),
             params: params(m)?,
         },

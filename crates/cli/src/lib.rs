@@ -5,7 +5,7 @@
 //! console script ([`run_with`]):
 //!
 //! ```text
-//! vesselflow skeletonize INPUT -o OUTPUT [--spacing A B C] [--plot PATH.png] [--PARAM VALUE ...] [-q|-v]
+//! vesselflow skeletonize INPUT -o OUTPUT [--spacing A B C] [--threshold T | --label V] [--plot PATH.png] [--PARAM VALUE ...] [-q|-v]
 //! vesselflow demo [-o OUTPUT] [--plot PATH.png]
 //! ```
 //!
@@ -183,7 +183,7 @@ where
 
 fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<String>) -> Result<(), Failure> {
     match task {
-        Task::Skeletonize { input, output, spacing, plot, params } => {
+        Task::Skeletonize { input, output, spacing, rule, plot, params } => {
             *context.borrow_mut() = format!("input {}", input.display());
             // Refuse a bad output path before reading or computing anything.
             vesselflow_io::check_graph_output(&output)?;
@@ -197,7 +197,7 @@ fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<Stri
                 Some(0) => vesselflow_io::ReadLimits::new(u64::MAX),
                 Some(bytes) => vesselflow_io::ReadLimits::new(bytes),
             };
-            let volume = vesselflow_io::read_volume_limited(&input, spacing, limits)?;
+            let volume = vesselflow_io::read_volume_limited(&input, spacing, rule, limits)?;
             let shape = volume.mask.shape();
             let mut reporter = Reporter::new(verbosity);
             reporter.line(&format!(

@@ -127,10 +127,11 @@ fn missing_input_is_an_io_error_naming_the_file() {
 fn unreadable_input_content_is_an_io_error() {
     let dir = TempDir::new().unwrap();
     let input = dir.path().join("image.npy");
-    ndarray::Array3::<f32>::zeros((4, 4, 4)).write_npy(File::create(&input).unwrap()).unwrap();
+    ndarray::Array3::<f32>::from_elem((4, 4, 4), 0.5).write_npy(File::create(&input).unwrap()).unwrap();
     let output = dir.path().join("g.json");
     let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&output)]);
-    assert_error(&out, 1, "threshold");
+    assert_error(&out, 1, "float32 values other than 0 and 1 (e.g. 0.5)");
+    assert!(stderr(&out).contains("--threshold T") && stderr(&out).contains("--label V"));
     assert!(!output.exists());
 }
 

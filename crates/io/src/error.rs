@@ -19,7 +19,8 @@ pub enum IoError {
         path = .path.display()
     )]
     UnsupportedVolume { path: PathBuf },
-    /// The volume holds values that are not a binary mask (floats, complex, records).
+    /// The volume holds values that are not a mask by the input rule ([`crate::MaskRule`]:
+    /// a label or probability image without a threshold or label) or cannot be one (complex, records).
     #[error("cannot read {path}: {reason}", path = .path.display())]
     NotAMask { path: PathBuf, reason: String },
     /// The volume is not three-dimensional.

@@ -1,7 +1,8 @@
 //! # vesselflow-io
 //!
 //! The file layer shared by the `vesselflow` command-line program and the Python
-//! bindings: binary vessel masks in ([`read_volume`]: `.npy`, `.nii`, `.nii.gz`, `.tif`)
+//! bindings: the input rule ([`MaskRule`], [`binarise`]: which images are masks and how
+//! others become one), vessel masks in ([`read_volume`]: `.npy`, `.nii`, `.nii.gz`, `.tif`)
 //! and centreline graphs out ([`write_graph`]: `.graphml`, `.json`, `.npz`, in
 //! the `vesselflow-graph` format, version 1). Every failure is an [`IoError`]
 //! whose message names the file and the problem; nothing here panics on bad input,
@@ -22,11 +23,13 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+mod binarise;
 pub mod budget;
 mod error;
 mod graph;
 mod volume;
 
+pub use binarise::{binarise, Binariser, MaskRule, Sample, MASK_ADVICE};
 pub use error::IoError;
 pub use graph::{
     check_graph_output, check_writable, params_json, run_info_json, write_atomically, write_graph, write_graph_arrays,

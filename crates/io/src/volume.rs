@@ -1,10 +1,10 @@
 //! Volume readers: `.npy`, NIfTI (`.nii`, `.nii.gz`) and TIFF stack (`.tif`, `.tiff`)
 //! files to a binary mask.
 //!
-//! A mask is "non-zero = vessel". Integer and bool data are binarised as such;
-//! floating-point data are refused (they are usually an intensity or probability
-//! image) except NIfTI and TIFF volumes whose every value is exactly 0 or 1,
-//! because segmentation tools often store masks as float32.
+//! Values become a mask by the input rule ([`MaskRule`], see [`crate::binarise`]),
+//! applied while the data stream through the reader, so the mask takes 1 byte per
+//! voxel whatever the file's data type: bool, integer and floating-point data are
+//! accepted if they are binary, and anything else only with a threshold or a label.
 //!
 //! Every reader treats the file as hostile: what the header declares (shape ×
 //! bytes per value, overflow-checked) is checked against the file's real size
@@ -17,7 +17,7 @@ mod nii;
 mod npy;
 mod tif;
 
-use crate::IoError;
+use crate::{IoError, MaskRule};
 use ndarray::Array3;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -90,50 +90,59 @@ fn volume_format(path: &Path) -> Option<VolumeFormat> {
 /// with the file's spacing, within the default memory budget
 /// ([`ReadLimits::for_this_process`]).
 ///
-/// `.npy`: bool or any integer dtype, either byte order, C or Fortran order;
-/// spacing 1, 1, 1. NIfTI-1: the header's byte order, `vox_offset` and
-/// `scl_slope`/`scl_inter` are honoured; integer data, or float data that are
-/// all exactly 0 or 1 after scaling; a 4-D (or higher) volume whose extra
-/// dimensions are all 1 is read as 3-D; spacing is `|pixdim[1..4]|`, which must
+/// The data must be a binary mask ([`MaskRule::Binary`]: bool, integers with at
+/// most one non-zero value, floats all exactly 0 or 1; else [`IoError::NotAMask`]
+/// naming the values found); [`read_volume_limited`] takes a threshold or a label
+/// instead.
+///
+/// `.npy`: bool, integer or float32/float64 dtype, either byte order, C or Fortran
+/// order; spacing 1, 1, 1. NIfTI-1: the header's byte order, `vox_offset` and
+/// `scl_slope`/`scl_inter` are honoured (scaled data are floating point); a 4-D
+/// (or higher) volume whose extra dimensions are all 1 is read as 3-D; spacing is `|pixdim[1..4]|`, which must
 /// be finite with magnitude in `[1e-12, 1e12]` (else [`IoError::BadPixdim`]).
 /// TIFF: greyscale pages of 8 to 64 bits as axes (page, row, column), ImageJ
 /// spacing. Any other content is refused with an error naming the file and the
 /// problem.
 pub fn read_volume(path: &Path) -> Result<VolumeFile, IoError> {
-    read_volume_limited(path, None, ReadLimits::for_this_process())
+    read_volume_limited(path, None, MaskRule::Binary, ReadLimits::for_this_process())
 }
 
 /// Like [`read_volume`], but with a spacing given by the caller, which replaces
 /// (and skips the validation of) whatever the file declares. Validating
 /// `spacing` itself is the caller's job (the core's `run` does it).
 pub fn read_volume_with_spacing(path: &Path, spacing: [f64; 3]) -> Result<VolumeFile, IoError> {
-    read_volume_limited(path, Some(spacing), ReadLimits::for_this_process())
+    read_volume_limited(path, Some(spacing), MaskRule::Binary, ReadLimits::for_this_process())
 }
 
-/// [`read_volume`] (`spacing` = `None`) or [`read_volume_with_spacing`] within the
-/// caller's memory budget: a file whose declared content would need more than
+/// [`read_volume`] (`spacing` = `None`) or [`read_volume_with_spacing`], with the
+/// values binarised by `rule`, within the caller's memory budget: a file whose declared content would need more than
 /// `limits.max_bytes` is refused with [`IoError::TooLarge`] before anything of
 /// that size is allocated or inflated.
 ///
 /// ```no_run
 /// use std::path::Path;
-/// use vesselflow_io::{read_volume_limited, IoError, ReadLimits};
+/// use vesselflow_io::{read_volume_limited, IoError, MaskRule, ReadLimits};
 ///
-/// match read_volume_limited(Path::new("mask.nii.gz"), None, ReadLimits::new(2 << 30)) {
+/// match read_volume_limited(Path::new("mask.nii.gz"), None, MaskRule::Binary, ReadLimits::new(2 << 30)) {
 ///     Ok(volume) => println!("{:?}", volume.mask.dim()),
 ///     Err(IoError::TooLarge { needed, .. }) => println!("needs {needed} bytes"),
 ///     Err(e) => return Err(e.into()),
 /// }
 /// # Ok::<(), Box<dyn std::error::Error>>(())
 /// ```
-pub fn read_volume_limited(path: &Path, spacing: Option<[f64; 3]>, limits: ReadLimits) -> Result<VolumeFile, IoError> {
+pub fn read_volume_limited(
+    path: &Path,
+    spacing: Option<[f64; 3]>,
+    rule: MaskRule,
+    limits: ReadLimits,
+) -> Result<VolumeFile, IoError> {
     match volume_format(path) {
         Some(VolumeFormat::Npy) => {
-            let mask = npy::read_npy(path, limits)?;
+            let mask = npy::read_npy(path, rule, limits)?;
             Ok(VolumeFile { mask, spacing: spacing.unwrap_or([1.0; 3]) })
         }
-        Some(VolumeFormat::Nifti) => nii::read_nifti(path, spacing, limits),
-        Some(VolumeFormat::Tiff) => tif::read_tiff(path, spacing, limits),
+        Some(VolumeFormat::Nifti) => nii::read_nifti(path, spacing, rule, limits),
+        Some(VolumeFormat::Tiff) => tif::read_tiff(path, spacing, rule, limits),
         None => Err(IoError::UnsupportedVolume { path: path.to_path_buf() }),
     }
 }
@@ -146,8 +155,30 @@ fn corrupt(path: &Path, format: &'static str, reason: impl ToString) -> IoError 
     IoError::Corrupt { path: path.to_path_buf(), format, reason: reason.to_string() }
 }
 
-const THRESHOLD_HINT: &str = "a mask must hold bool or integer values (non-zero = vessel): threshold the image first \
-     (e.g. `image > t`) and save the result";
+/// The values of a file that are not a mask under the rule.
+fn not_a_mask(path: &Path, reason: String) -> IoError {
+    IoError::NotAMask { path: path.to_path_buf(), reason }
+}
+
+/// A value type decoded from its bytes in either byte order.
+trait Decode: crate::Sample {
+    const SIZE: usize;
+    fn decode(bytes: &[u8], big_endian: bool) -> Self;
+}
+
+macro_rules! decode {
+    ($($t:ty),*) => {$(
+        impl Decode for $t {
+            const SIZE: usize = std::mem::size_of::<$t>();
+            fn decode(bytes: &[u8], big_endian: bool) -> $t {
+                let mut b = [0u8; std::mem::size_of::<$t>()];
+                b.copy_from_slice(bytes);
+                if big_endian { <$t>::from_be_bytes(b) } else { <$t>::from_le_bytes(b) }
+            }
+        }
+    )*};
+}
+decode!(u8, i8, u16, i16, u32, i32, u64, i64, f32, f64);
 
 /// Spacing values outside `[MIN_SPACING, MAX_SPACING]` (in magnitude) are refused:
 /// they are header corruption, and squared or cubed later they would underflow
@@ -209,4 +240,34 @@ fn try_vec(path: &Path, len: u64) -> Result<Vec<u8>, IoError> {
             ),
         }),
     }
+}
+
+/// Read `count` values of type `T` (in the given byte order) through a buffer of
+/// `buffer_bytes`, `convert` each (NIfTI scaling; identity otherwise) and append
+/// its mask by `rule` to `out`. The inner `Err` says why the data are not a mask;
+/// reading stops at the first chunk that shows it.
+fn stream_mask<T: Decode, S: crate::Sample>(
+    reader: &mut impl std::io::Read,
+    count: u64,
+    buffer_bytes: u64,
+    big_endian: bool,
+    rule: MaskRule,
+    convert: impl Fn(T) -> S,
+    out: &mut Vec<u8>,
+) -> std::io::Result<Result<(), String>> {
+    let mut binariser = crate::Binariser::<S>::new(rule);
+    let mut buffer = vec![0u8; buffer_bytes as usize];
+    let chunk_items = (buffer_bytes / T::SIZE as u64).max(1);
+    let mut done = 0u64;
+    while done < count {
+        let items = chunk_items.min(count - done);
+        let chunk = &mut buffer[..items as usize * T::SIZE];
+        reader.read_exact(chunk)?;
+        binariser.extend(chunk.chunks_exact(T::SIZE).map(|b| convert(T::decode(b, big_endian))), out);
+        if binariser.refused() {
+            break;
+        }
+        done += items;
+    }
+    Ok(binariser.finish())
 }

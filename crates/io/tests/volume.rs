@@ -10,7 +10,7 @@ use ndarray_npy::WriteNpyExt;
 use std::fs::{self, File};
 use std::path::{Path, PathBuf};
 use tempfile::TempDir;
-use vesselflow_io::{read_volume, read_volume_with_spacing, IoError};
+use vesselflow_io::{read_volume, read_volume_limited, read_volume_with_spacing, IoError, MaskRule, ReadLimits};
 
 /// A 3x4x5 volume whose value at (i, j, k) depends on all three indices, so any
 /// axis mix-up or transposition changes it; about half the voxels are zero.
@@ -37,12 +37,13 @@ fn npy_header_text(path: &Path) -> String {
     String::from_utf8_lossy(&fs::read(path).unwrap()[..128]).into_owned()
 }
 
-/// Write `values` in C order and in Fortran order, read both back, compare.
-fn npy_round_trip<T>(dir: &TempDir, name: &str, zero: T, values: [T; 3])
+/// Write the pattern of `zero` and `one` (the vessel value) in C order and in Fortran
+/// order, read both back, compare.
+fn npy_round_trip<T>(dir: &TempDir, name: &str, zero: T, one: T)
 where
     T: Copy + ndarray_npy::WritableElement,
 {
-    let c_order = pattern(zero, values);
+    let c_order = pattern(zero, [one; 3]);
     let mut f_order = Array3::from_elem((3, 4, 5).f(), zero);
     f_order.assign(&c_order);
 
@@ -61,29 +62,50 @@ where
 }
 
 #[test]
-fn npy_bool_and_every_integer_dtype_in_c_and_fortran_order() {
+fn npy_bool_and_every_integer_and_float_dtype_in_c_and_fortran_order() {
     let dir = TempDir::new().unwrap();
-    npy_round_trip(&dir, "bool", false, [true, true, true]);
-    npy_round_trip(&dir, "u8", 0u8, [1, 7, 255]);
-    npy_round_trip(&dir, "i8", 0i8, [-1, 5, i8::MIN]);
-    npy_round_trip(&dir, "u16", 0u16, [1, 300, u16::MAX]);
-    npy_round_trip(&dir, "i16", 0i16, [-300, 2, i16::MAX]);
-    npy_round_trip(&dir, "u32", 0u32, [1, 70_000, u32::MAX]);
-    npy_round_trip(&dir, "i32", 0i32, [-70_000, 3, i32::MIN]);
-    npy_round_trip(&dir, "u64", 0u64, [1, 1 << 40, u64::MAX]);
-    npy_round_trip(&dir, "i64", 0i64, [-(1 << 40), 9, i64::MIN]);
+    npy_round_trip(&dir, "bool", false, true);
+    npy_round_trip(&dir, "u8", 0u8, 255);
+    npy_round_trip(&dir, "i8", 0i8, i8::MIN);
+    npy_round_trip(&dir, "u16", 0u16, u16::MAX);
+    npy_round_trip(&dir, "i16", 0i16, -300);
+    npy_round_trip(&dir, "u32", 0u32, u32::MAX);
+    npy_round_trip(&dir, "i32", 0i32, i32::MIN);
+    npy_round_trip(&dir, "u64", 0u64, u64::MAX);
+    npy_round_trip(&dir, "i64", 0i64, i64::MIN);
+    npy_round_trip(&dir, "f32", 0f32, 1.0);
+    npy_round_trip(&dir, "f64", -0f64, 1.0);
+}
+
+fn read_with(path: &Path, rule: MaskRule) -> Result<vesselflow_io::VolumeFile, IoError> {
+    read_volume_limited(path, None, rule, ReadLimits::new(1 << 30))
 }
 
 #[test]
-fn npy_big_endian_integers_are_accepted() {
-    // (Byte order cannot change whether an integer is zero; this checks that a
-    // `>` descriptor is read at all, as NumPy writes on big-endian machines.)
+fn npy_label_images_are_refused_unless_a_label_or_threshold_is_given() {
+    let dir = TempDir::new().unwrap();
+    let path = dir.path().join("labels.npy");
+    let labels = pattern(0u16, [3, 6, 3]);
+    write_npy(&path, &labels);
+    let msg = error_text(read_volume(&path));
+    assert!(msg.contains("labels.npy") && msg.contains("uint16 values 0, 3 and 6"), "{msg}");
+    assert!(msg.contains("threshold=") && msg.contains("--label"), "{msg}");
+    let label3 = read_with(&path, MaskRule::Label(3.0)).unwrap();
+    assert_eq!(label3.mask, labels.mapv(|v| u8::from(v == 3)));
+    let above4 = read_with(&path, MaskRule::Threshold(4.0)).unwrap();
+    assert_eq!(above4.mask, labels.mapv(|v| u8::from(v == 6)));
+}
+
+#[test]
+fn npy_big_endian_values_are_decoded() {
+    // A label of 256 read in the wrong byte order would be 65536.
     let dir = TempDir::new().unwrap();
     let path = dir.path().join("big.npy");
     let data: Vec<u8> = [0i32, 256, 0, -5].iter().flat_map(|v| v.to_be_bytes()).collect();
     fs::write(&path, npy_bytes("'>i4'", false, "(1, 2, 2)", &data)).unwrap();
-    let volume = read_volume(&path).unwrap();
-    assert_eq!(volume.mask, ndarray::array![[[0u8, 1], [0, 1]]]);
+    assert!(error_text(read_volume(&path)).contains("int32 values 0, 256 and -5"));
+    let volume = read_with(&path, MaskRule::Label(256.0)).unwrap();
+    assert_eq!(volume.mask, ndarray::array![[[0u8, 1], [0, 0]]]);
 }
 
 fn error_text(result: Result<vesselflow_io::VolumeFile, IoError>) -> String {
@@ -94,20 +116,24 @@ fn error_text(result: Result<vesselflow_io::VolumeFile, IoError>) -> String {
 }
 
 #[test]
-fn npy_float_is_refused_with_advice() {
+fn npy_probability_map_is_refused_with_advice_and_thresholded_on_request() {
     let dir = TempDir::new().unwrap();
-    for (name, descr) in [("f32", "<f4"), ("f64", "<f8")] {
-        let path = dir.path().join(format!("{name}.npy"));
-        if name == "f32" {
-            write_npy(&path, &pattern(0f32, [1.0, 1.0, 1.0]));
-        } else {
-            write_npy(&path, &pattern(0f64, [0.5, 1.0, 2.0]));
-        }
-        let msg = error_text(read_volume(&path));
-        assert!(msg.contains(&path.display().to_string()), "{msg}");
-        assert!(msg.contains(descr), "{msg}");
-        assert!(msg.contains("threshold"), "{msg}");
-    }
+    let path = dir.path().join("p.npy");
+    let map = pattern(0f64, [0.75; 3]);
+    write_npy(&path, &map);
+    let msg = error_text(read_volume(&path));
+    assert!(msg.contains(&path.display().to_string()), "{msg}");
+    assert!(msg.contains("float64 values other than 0 and 1 (e.g. 0.75)"), "{msg}");
+    assert!(msg.contains("threshold="), "{msg}");
+    let mask = read_with(&path, MaskRule::Threshold(0.5)).unwrap().mask;
+    assert_eq!(mask, map.mapv(|v| u8::from(v > 0.5)));
+    // Half floats (0, 1, 0.5 as IEEE 754 binary16 bits): 0/1 is a mask, 0.5 is not.
+    let path = dir.path().join("half.npy");
+    let halves = |bits: [u16; 2]| bits.iter().flat_map(|b| b.to_le_bytes()).collect::<Vec<u8>>();
+    fs::write(&path, npy_bytes("'<f2'", false, "(1, 1, 2)", &halves([0x0000, 0x3c00]))).unwrap();
+    assert_eq!(read_volume(&path).unwrap().mask, ndarray::array![[[0u8, 1]]]);
+    fs::write(&path, npy_bytes("'<f2'", false, "(1, 1, 2)", &halves([0x3800, 0x3c00]))).unwrap();
+    assert!(error_text(read_volume(&path)).contains("float32 values other than 0 and 1 (e.g. 0.5)"));
 }
 
 #[test]
@@ -222,7 +248,7 @@ fn nifti_integer_mask_with_spacing_from_pixdim() {
     let dir = TempDir::new().unwrap();
     for name in ["m.nii", "m.nii.gz"] {
         let path = dir.path().join(name);
-        write_nifti(&path, [0.3, 0.5, 2.0], &pattern(0i16, [1, 2, -3]));
+        write_nifti(&path, [0.3, 0.5, 2.0], &pattern(0i16, [-3; 3]));
         let volume = read_volume(&path).unwrap();
         assert_eq!(volume.mask, expected_mask(), "{name}");
         // 0.3 as written in f32 is read back as the decimal the user meant.
@@ -263,8 +289,10 @@ fn nifti_float_zero_one_mask_is_accepted_and_float_image_refused() {
     image[(2, 3, 4)] = 0.37;
     write_nifti(&path, [1.0, 1.0, 1.0], &image);
     let msg = error_text(read_volume(&path));
-    assert!(msg.contains("img.nii") && msg.contains("0.37") && msg.contains("(2, 3, 4)"), "{msg}");
-    assert!(msg.contains("threshold"), "{msg}");
+    assert!(msg.contains("img.nii") && msg.contains("float64 values other than 0 and 1 (e.g. 0.37)"), "{msg}");
+    assert!(msg.contains("threshold="), "{msg}");
+    let mask = read_with(&path, MaskRule::Threshold(0.5)).unwrap().mask;
+    assert_eq!(mask, expected_mask());
 }
 
 /// Overwrite `scl_slope` and `scl_inter` (bytes 112..120 of a little-endian NIfTI-1 header).
@@ -285,11 +313,13 @@ fn nifti_scaling_is_applied_before_binarising() {
     set_scaling(&path, 0.5, 0.0);
     assert_eq!(read_volume(&path).unwrap().mask, expected_mask());
 
-    // Integer 0/1 with inter -1 is the inverted mask.
+    // Integer 0/1 with inter -1 holds -1 and 0 (floats, as in nibabel): not a mask,
+    // but label -1 is the inverted mask.
     let path = dir.path().join("inverted.nii");
     write_nifti(&path, [1.0, 1.0, 1.0], &pattern(0u8, [1, 1, 1]));
     set_scaling(&path, 1.0, -1.0);
-    assert_eq!(read_volume(&path).unwrap().mask, expected_mask().mapv(|v| 1 - v));
+    assert!(error_text(read_volume(&path)).contains("float64 values other than 0 and 1 (e.g. -1)"));
+    assert_eq!(read_with(&path, MaskRule::Label(-1.0)).unwrap().mask, expected_mask().mapv(|v| 1 - v));
 
     // Slope 0 means "no scaling" (NIfTI-1).
     set_scaling(&path, 0.0, 5.0);
@@ -385,6 +415,21 @@ fn tiff_stacks_read_as_page_row_column_with_imagej_spacing() {
     write_tiff::<tiff::encoder::colortype::Gray8>(&plain, &[vec![0u8, 1, 0, 1]], 2, 2, None);
     let v = read_volume(&plain).unwrap();
     assert_eq!((v.mask.dim(), v.spacing), ((1, 2, 2), [1.0; 3]));
+}
+
+#[test]
+fn tiff_label_stack_is_refused_across_pages_and_read_by_label() {
+    // One label per page: only the stack as a whole shows two non-zero values.
+    let dir = TempDir::new().unwrap();
+    let path = dir.path().join("labels.tif");
+    write_tiff::<tiff::encoder::colortype::Gray8>(&path, &[vec![0u8, 3, 3, 0], vec![5u8, 0, 0, 5]], 2, 2, None);
+    let msg = error_text(read_volume(&path));
+    assert!(msg.contains("labels.tif") && msg.contains("uint8 values 0, 3 and 5"), "{msg}");
+    let v = read_with(&path, MaskRule::Label(5.0)).unwrap();
+    assert_eq!(v.mask, ndarray::array![[[0u8, 0], [0, 0]], [[1, 0], [0, 1]]]);
+    let path = dir.path().join("float.tif");
+    write_tiff::<tiff::encoder::colortype::Gray32Float>(&path, &[vec![0.0f32, 1.0, 1.0, 0.0]], 2, 2, None);
+    assert_eq!(read_volume(&path).unwrap().mask, ndarray::array![[[0u8, 1], [1, 0]]]);
 }
 
 #[test]

@@ -5,6 +5,7 @@
 //! Python exceptions in one place ([`errors`]). The user-facing API is the
 //! `vesselflow` Python package, which wraps this module.
 
+mod binarise;
 mod cli;
 mod errors;
 mod graph_io;
@@ -19,6 +20,7 @@ use pyo3::prelude::*;
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_class::<skeletonizer::PySkeletonizer>()?;
+    m.add_function(wrap_pyfunction!(binarise::binarise, m)?)?;
     m.add_function(wrap_pyfunction!(params::param_defaults, m)?)?;
     m.add_function(wrap_pyfunction!(memory::memory_estimate, m)?)?;
     m.add_function(wrap_pyfunction!(graph_io::write_graph, m)?)?;

@@ -3,14 +3,15 @@
 
 use ndarray::Array2;
 use numpy::prelude::*;
-use numpy::{Element, PyArray1, PyArray3, PyArrayDescr, PyUntypedArray};
+use numpy::{Element, PyArray1, PyArray3, PyUntypedArray};
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use vesselflow::{Params, Progress, RunInfo, Skeleton, Voxel};
 
 use crate::params::{value_from_py, value_to_py};
-use crate::{errors, watch};
+use crate::{binarise, errors, watch};
+use vesselflow_io::MaskRule;
 
 /// The method with a fixed set of parameters (see `vesselflow.Skeletonizer`).
 #[pyclass(module = "vesselflow._core", name = "Skeletonizer", frozen)]
@@ -61,20 +62,24 @@ impl PySkeletonizer {
         self.inner.params() == other.inner.params()
     }
 
-    /// Skeletonize `mask` (3-D bool or integer array, non-zero = vessel) with voxel
-    /// `spacing`. Returns `(positions, radii, edges, info)`.
+    /// Skeletonize `mask` (3-D array made a mask by the input rule, see `binarise`,
+    /// with `threshold` or `label`) with voxel `spacing` (3 numbers, or one for all
+    /// axes). Returns `(positions, radii, edges, info)`.
     #[pyo3(
-        signature = (mask, spacing = vec![1.0, 1.0, 1.0], progress = None),
-        text_signature = "(self, mask, spacing=(1.0, 1.0, 1.0), progress=None)"
+        signature = (mask, spacing = Spacing::Axes(vec![1.0, 1.0, 1.0]), progress = None, threshold = None, label = None),
+        text_signature = "(self, mask, spacing=(1.0, 1.0, 1.0), progress=None, threshold=None, label=None)"
     )]
     fn run<'py>(
         &self,
         py: Python<'py>,
         mask: &Bound<'py, PyAny>,
-        spacing: Vec<f64>,
+        spacing: Spacing,
         progress: Option<Bound<'py, PyAny>>,
+        threshold: Option<f64>,
+        label: Option<f64>,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        let spacing: [f64; 3] = spacing.try_into().map_err(|s| errors::core(vesselflow::Error::InvalidSpacing(s)))?;
+        let spacing = spacing.axes()?;
+        let rule = MaskRule::new(threshold, label).map_err(PyValueError::new_err)?;
         if let Some(cb) = &progress {
             if !cb.is_callable() {
                 return Err(PyTypeError::new_err(format!(
@@ -109,62 +114,53 @@ impl PySkeletonizer {
                 &limited
             }
         };
-        let skeleton = run_any(py, skeletonizer, mask, spacing, &mut observer, &mut signal);
+        let skeleton = run_any(py, skeletonizer, mask, rule, spacing, &mut observer, &mut signal);
         let skeleton = skeleton?.map_err(|e| errors::to_py(e, pending.take().or(signal.take())))?;
         skeleton_to_py(py, skeleton)
     }
 }
 
-/// Check that `mask` is a 3-D bool or integer array and run on it with its own element
-/// type. The outer `PyResult` holds mask errors (and caught panics), the inner one the
-/// core's; `signal` receives the exception of a signal handler that stopped the run.
+/// Voxel spacing as Python gives it: three numbers, or one for every axis.
+#[derive(FromPyObject)]
+pub enum Spacing {
+    Isotropic(f64),
+    Axes(Vec<f64>),
+}
+
+impl Spacing {
+    /// The spacing of axes 0, 1, 2; anything but 1 or 3 numbers is the core's
+    /// `InvalidSpacing` (its range is checked by the run).
+    fn axes(self) -> PyResult<[f64; 3]> {
+        match self {
+            Spacing::Isotropic(s) => Ok([s; 3]),
+            Spacing::Axes(s) => s.try_into().map_err(|s| errors::core(vesselflow::Error::InvalidSpacing(s))),
+        }
+    }
+}
+
+/// Check that `mask` is a 3-D array, make it a bool mask by `rule` (no copy if it is
+/// one already, see [`binarise::mask_of`]) and run on it. The outer `PyResult` holds
+/// mask errors (and caught panics), the inner one the core's; `signal` receives the
+/// exception of a signal handler that stopped the run.
 fn run_any(
     py: Python<'_>,
     sk: &vesselflow::Skeletonizer,
     mask: &Bound<'_, PyAny>,
+    rule: MaskRule,
     spacing: [f64; 3],
     observer: &mut (dyn FnMut(&Progress) -> bool + Send),
     signal: &mut Option<PyErr>,
 ) -> PyResult<vesselflow::Result<Skeleton>> {
-    let array = mask.cast::<PyUntypedArray>().map_err(|_| {
-        PyTypeError::new_err(format!(
-            "mask must be a numpy.ndarray, got {}",
-            mask.get_type().name().map_or_else(|_| "?".into(), |n| n.to_string())
-        ))
-    })?;
-    if array.ndim() != 3 {
-        return Err(PyValueError::new_err(format!("mask must be 3-D, got shape {:?}", array.shape())));
-    }
-    let dtype = array.dtype();
-    // Byte-swapped masks (read from big-endian files) are the one case that is copied.
-    if dtype.is_native_byteorder() == Some(false) {
-        let native = dtype.call_method1("newbyteorder", ("=",))?;
-        let swapped = array.call_method1("astype", (native,))?;
-        return run_any(py, sk, &swapped, spacing, observer, signal);
-    }
-    match (dtype.kind(), dtype.itemsize()) {
-        // A NumPy bool byte may hold any value (`uint8_array.view(bool)`), which a Rust
-        // `bool` must not: read bool masks through a uint8 view (no copy).
-        (b'b', 1) => {
-            let bytes = array.call_method1("view", ("u1",))?;
-            run_typed::<u8>(py, sk, &bytes, spacing, observer, signal)
+    if let Ok(array) = mask.cast::<PyUntypedArray>() {
+        if array.ndim() != 3 {
+            return Err(PyValueError::new_err(format!("mask must be 3-D, got shape {:?}", array.shape())));
         }
-        (b'i', 1) => run_typed::<i8>(py, sk, mask, spacing, observer, signal),
-        (b'i', 2) => run_typed::<i16>(py, sk, mask, spacing, observer, signal),
-        (b'i', 4) => run_typed::<i32>(py, sk, mask, spacing, observer, signal),
-        (b'i', 8) => run_typed::<i64>(py, sk, mask, spacing, observer, signal),
-        (b'u', 1) => run_typed::<u8>(py, sk, mask, spacing, observer, signal),
-        (b'u', 2) => run_typed::<u16>(py, sk, mask, spacing, observer, signal),
-        (b'u', 4) => run_typed::<u32>(py, sk, mask, spacing, observer, signal),
-        (b'u', 8) => run_typed::<u64>(py, sk, mask, spacing, observer, signal),
-        _ => Err(unsupported_dtype(&dtype)),
     }
-}
-
-fn unsupported_dtype(dtype: &Bound<'_, PyArrayDescr>) -> PyErr {
-    PyTypeError::new_err(format!(
-        "mask dtype {dtype} is not bool or integer: binarise it first, e.g. `mask > threshold`"
-    ))
+    let mask = binarise::mask_of(py, mask, rule)?;
+    // A NumPy bool byte may hold any value (`uint8_array.view(bool)`), which a Rust
+    // `bool` must not: read bool masks through a uint8 view (no copy).
+    let bytes = mask.call_method1("view", ("u1",))?;
+    run_typed::<u8>(py, sk, &bytes, spacing, observer, signal)
 }
 
 /// Borrow the array read-only (any strides, no copy) and run with the GIL released,

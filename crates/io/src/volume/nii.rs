@@ -8,10 +8,10 @@
 //! declares, which also caps how much of a compressed stream is ever inflated.
 
 use super::{
-    check_budget, checked_product, corrupt, dims_text, read_error, spacing_in_range, try_vec, ReadLimits, VolumeFile,
-    CHUNK_BYTES, THRESHOLD_HINT,
+    check_budget, checked_product, corrupt, dims_text, not_a_mask, read_error, spacing_in_range, stream_mask, try_vec,
+    Decode, ReadLimits, VolumeFile, CHUNK_BYTES,
 };
-use crate::IoError;
+use crate::{IoError, MaskRule};
 use flate2::read::MultiGzDecoder;
 use ndarray::{Array3, ShapeBuilder};
 use nifti::{NiftiHeader, NiftiType};
@@ -65,16 +65,21 @@ fn stream_error(path: &Path, e: std::io::Error) -> IoError {
     }
 }
 
-pub(super) fn read_nifti(path: &Path, spacing: Option<[f64; 3]>, limits: ReadLimits) -> Result<VolumeFile, IoError> {
+pub(super) fn read_nifti(
+    path: &Path,
+    spacing: Option<[f64; 3]>,
+    rule: MaskRule,
+    limits: ReadLimits,
+) -> Result<VolumeFile, IoError> {
     let file = File::open(path).map_err(read_error(path))?;
     let file_len = file.metadata().map_err(read_error(path))?.len();
     let mut reader = BufReader::new(file);
     // Compressed or not by content (gzip magic 1f 8b), whatever the name says.
     let gz = reader.fill_buf().map_err(read_error(path))?.starts_with(&[0x1f, 0x8b]);
     if gz {
-        read_stream(path, MultiGzDecoder::new(reader), None, spacing, limits)
+        read_stream(path, MultiGzDecoder::new(reader), None, spacing, rule, limits)
     } else {
-        read_stream(path, reader, Some(file_len), spacing, limits)
+        read_stream(path, reader, Some(file_len), spacing, rule, limits)
     }
 }
 
@@ -124,10 +129,10 @@ fn read_header(path: &Path, raw: &[u8; HEADER_BYTES as usize]) -> Result<(NiftiH
         NiftiType::Uint32 | NiftiType::Int32 | NiftiType::Float32 => 4,
         NiftiType::Uint64 | NiftiType::Int64 | NiftiType::Float64 => 8,
         other => {
-            return Err(IoError::NotAMask {
-                path: path.to_path_buf(),
-                reason: format!("NIfTI datatype {other:?} is not a mask; {THRESHOLD_HINT}"),
-            })
+            return Err(not_a_mask(
+                path,
+                format!("NIfTI datatype {other:?} is not a mask: save a bool, integer or float mask"),
+            ))
         }
     };
 
@@ -152,6 +157,7 @@ fn read_stream<R: Read>(
     mut reader: R,
     file_len: Option<u64>,
     spacing: Option<[f64; 3]>,
+    rule: MaskRule,
     limits: ReadLimits,
 ) -> Result<VolumeFile, IoError> {
     let mut raw = [0u8; HEADER_BYTES as usize];
@@ -211,31 +217,14 @@ fn read_stream<R: Read>(
     }
 
     let mut values = try_vec(path, count)?;
-    let mut buffer = vec![0u8; buffer_bytes as usize];
-    let chunk_items = (buffer_bytes / item_size).max(1);
-    let mut done = 0u64;
-    while done < count {
-        let items = chunk_items.min(count - done);
-        let chunk = &mut buffer[..(items * item_size) as usize];
-        reader.read_exact(chunk).map_err(|e| match e.kind() {
+    stream_voxels(&mut reader, &layout, count, buffer_bytes, rule, &mut values)
+        .map_err(|e| match e.kind() {
             ErrorKind::UnexpectedEof => {
                 corrupt(path, FORMAT, format!("truncated: {}, the data end sooner", declares()))
             }
             _ => stream_error(path, e),
-        })?;
-        binarise(&layout, chunk, done, &mut values).map_err(|(index, x)| {
-            let [n0, n1, _] = dims;
-            let voxel = (index % n0, index / n0 % n1, index / (n0 * n1));
-            IoError::NotAMask {
-                path: path.to_path_buf(),
-                reason: format!(
-                    "floating-point image with values other than 0 and 1 (e.g. {x} at voxel \
-                     {voxel:?}), not a mask; {THRESHOLD_HINT}"
-                ),
-            }
-        })?;
-        done += items;
-    }
+        })?
+        .map_err(|reason| not_a_mask(path, reason))?;
     if file_len.is_none() {
         // Compressed: the stream must end here (this also checks the gzip CRC).
         let more = reader.read(&mut [0u8; 1]).map_err(|e| stream_error(path, e))?;
@@ -249,66 +238,41 @@ fn read_stream<R: Read>(
     Ok(VolumeFile { mask, spacing })
 }
 
-/// A NIfTI voxel type decoded from its bytes in either byte order.
-trait Voxel: Copy {
-    const SIZE: usize;
-    fn decode(bytes: &[u8], big_endian: bool) -> Self;
-    fn value(self) -> f64;
-}
-
-macro_rules! voxel {
-    ($($t:ty),*) => {$(
-        impl Voxel for $t {
-            const SIZE: usize = std::mem::size_of::<$t>();
-            fn decode(bytes: &[u8], big_endian: bool) -> $t {
-                let mut b = [0u8; std::mem::size_of::<$t>()];
-                b.copy_from_slice(bytes);
-                if big_endian { <$t>::from_be_bytes(b) } else { <$t>::from_le_bytes(b) }
-            }
-            fn value(self) -> f64 {
-                self as f64
-            }
-        }
-    )*};
-}
-voxel!(u8, i8, u16, i16, u32, i32, u64, i64, f32, f64);
-
-/// Append the mask of one chunk of voxels (the first is voxel `first` of the
-/// volume) to `out`. Integers: vessel where the (scaled) value is non-zero. Floats:
-/// every (scaled) value must be exactly 0 or 1, else `Err((index, value))`.
-fn binarise(layout: &Layout, chunk: &[u8], first: u64, out: &mut Vec<u8>) -> Result<(), (u64, f64)> {
-    fn ints<T: Voxel>(layout: &Layout, chunk: &[u8], out: &mut Vec<u8>) {
+/// [`stream_mask`] for the header's datatype: scaled data (`scl_slope`, `scl_inter`)
+/// are floating point, as in nibabel, so the rule sees the values the user sees.
+fn stream_voxels(
+    reader: &mut impl Read,
+    layout: &Layout,
+    count: u64,
+    buffer_bytes: u64,
+    rule: MaskRule,
+    out: &mut Vec<u8>,
+) -> std::io::Result<Result<(), String>> {
+    fn typed<T: Decode>(
+        reader: &mut impl Read,
+        layout: &Layout,
+        count: u64,
+        buffer_bytes: u64,
+        rule: MaskRule,
+        out: &mut Vec<u8>,
+    ) -> std::io::Result<Result<(), String>> {
+        let big = layout.big_endian;
         match layout.scaling {
-            // An integer is zero exactly when all its bytes are, in either byte order.
-            None => out.extend(chunk.chunks_exact(T::SIZE).map(|b| u8::from(b.iter().any(|&x| x != 0)))),
-            Some(s) => out.extend(
-                chunk.chunks_exact(T::SIZE).map(|b| u8::from(s.apply(T::decode(b, layout.big_endian).value()) != 0.0)),
-            ),
+            None => stream_mask(reader, count, buffer_bytes, big, rule, |x: T| x, out),
+            Some(s) => stream_mask(reader, count, buffer_bytes, big, rule, |x: T| s.apply(x.to_f64()), out),
         }
-    }
-    fn floats<T: Voxel>(layout: &Layout, chunk: &[u8], first: u64, out: &mut Vec<u8>) -> Result<(), (u64, f64)> {
-        for (i, b) in chunk.chunks_exact(T::SIZE).enumerate() {
-            let v = T::decode(b, layout.big_endian).value();
-            let x = layout.scaling.map_or(v, |s| s.apply(v));
-            if x != 0.0 && x != 1.0 {
-                return Err((first + i as u64, x));
-            }
-            out.push(u8::from(x == 1.0));
-        }
-        Ok(())
     }
     match layout.datatype {
-        NiftiType::Uint8 => ints::<u8>(layout, chunk, out),
-        NiftiType::Int8 => ints::<i8>(layout, chunk, out),
-        NiftiType::Uint16 => ints::<u16>(layout, chunk, out),
-        NiftiType::Int16 => ints::<i16>(layout, chunk, out),
-        NiftiType::Uint32 => ints::<u32>(layout, chunk, out),
-        NiftiType::Int32 => ints::<i32>(layout, chunk, out),
-        NiftiType::Uint64 => ints::<u64>(layout, chunk, out),
-        NiftiType::Int64 => ints::<i64>(layout, chunk, out),
-        NiftiType::Float32 => floats::<f32>(layout, chunk, first, out)?,
+        NiftiType::Uint8 => typed::<u8>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Int8 => typed::<i8>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Uint16 => typed::<u16>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Int16 => typed::<i16>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Uint32 => typed::<u32>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Int32 => typed::<i32>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Uint64 => typed::<u64>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Int64 => typed::<i64>(reader, layout, count, buffer_bytes, rule, out),
+        NiftiType::Float32 => typed::<f32>(reader, layout, count, buffer_bytes, rule, out),
         // `read_header` admits no other type.
-        _ => floats::<f64>(layout, chunk, first, out)?,
+        _ => typed::<f64>(reader, layout, count, buffer_bytes, rule, out),
     }
-    Ok(())
 }

@@ -1,11 +1,12 @@
-//! `.npy` masks (`numpy.lib.format`, versions 1 to 3): bool or integer dtypes of
-//! either byte order, C or Fortran order.
+//! `.npy` masks (`numpy.lib.format`, versions 1 to 3): bool, integer and
+//! float32/float64 dtypes of either byte order, C or Fortran order.
 
 use super::{
-    check_budget, checked_product, corrupt, dims_text, read_error, try_vec, ReadLimits, CHUNK_BYTES, THRESHOLD_HINT,
+    check_budget, checked_product, corrupt, dims_text, not_a_mask, read_error, stream_mask, try_vec, ReadLimits,
+    CHUNK_BYTES,
 };
 use crate::error::shape_text;
-use crate::IoError;
+use crate::{IoError, MaskRule};
 use ndarray::{Array3, ShapeBuilder};
 use num_traits::ToPrimitive;
 use std::fs::File;
@@ -97,28 +98,65 @@ fn nesting_depth(text: &str) -> usize {
     deepest
 }
 
-/// Bytes per element of a mask dtype descriptor (`|b1`, `<i4`, `>u2`, `?`, ...), or
-/// what kind of non-mask data it describes.
-fn mask_item_size(descr: &py_literal::Value) -> Result<u64, &'static str> {
+/// The value types an `.npy` mask may hold.
+#[derive(Clone, Copy)]
+enum NpyType {
+    Bool,
+    U8,
+    I8,
+    U16,
+    I16,
+    U32,
+    I32,
+    U64,
+    I64,
+    F16,
+    F32,
+    F64,
+}
+
+/// The value type and byte order (`true`: big-endian) of a dtype descriptor (`|b1`,
+/// `<i4`, `>f8`, `?`, ...), or what kind of other data it describes.
+fn npy_type(descr: &py_literal::Value) -> Result<(NpyType, bool), &'static str> {
     let Some(descr) = descr.as_string() else {
         return Err("a structured dtype");
     };
+    let big_endian = descr.starts_with('>');
     let body = descr.strip_prefix(['<', '>', '|', '=']).unwrap_or(descr);
     let (kind, size) = body.split_at(body.chars().next().map_or(0, char::len_utf8));
-    match (kind, size) {
-        ("b", "1") | ("?", "" | "1") => Ok(1),
-        ("i" | "u", "1") => Ok(1),
-        ("i" | "u", "2") => Ok(2),
-        ("i" | "u", "4") => Ok(4),
-        ("i" | "u", "8") => Ok(8),
-        ("f" | "e" | "d" | "g", _) => Err("floating point"),
-        ("c", _) => Err("complex"),
-        ("O", _) => Err("Python objects (a pickled array, which is never read)"),
-        _ => Err("not a bool or integer type"),
+    let t = match (kind, size) {
+        ("b", "1") | ("?", "" | "1") => NpyType::Bool,
+        ("u", "1") => NpyType::U8,
+        ("i", "1") => NpyType::I8,
+        ("u", "2") => NpyType::U16,
+        ("i", "2") => NpyType::I16,
+        ("u", "4") => NpyType::U32,
+        ("i", "4") => NpyType::I32,
+        ("u", "8") => NpyType::U64,
+        ("i", "8") => NpyType::I64,
+        ("f", "2") => NpyType::F16,
+        ("f", "4") => NpyType::F32,
+        ("f", "8") => NpyType::F64,
+        ("f" | "e" | "d" | "g", _) => return Err("floating point of a precision other than 16, 32 or 64 bits"),
+        ("c", _) => return Err("complex"),
+        ("O", _) => return Err("Python objects (a pickled array, which is never read)"),
+        _ => return Err("not a bool, integer or float type"),
+    };
+    Ok((t, big_endian))
+}
+
+impl NpyType {
+    fn size(self) -> u64 {
+        match self {
+            NpyType::Bool | NpyType::U8 | NpyType::I8 => 1,
+            NpyType::U16 | NpyType::I16 | NpyType::F16 => 2,
+            NpyType::U32 | NpyType::I32 | NpyType::F32 => 4,
+            NpyType::U64 | NpyType::I64 | NpyType::F64 => 8,
+        }
     }
 }
 
-pub(super) fn read_npy(path: &Path, limits: ReadLimits) -> Result<Array3<u8>, IoError> {
+pub(super) fn read_npy(path: &Path, rule: MaskRule, limits: ReadLimits) -> Result<Array3<u8>, IoError> {
     let file = File::open(path).map_err(read_error(path))?;
     let file_len = file.metadata().map_err(read_error(path))?.len();
     let mut reader = BufReader::new(file);
@@ -129,10 +167,13 @@ pub(super) fn read_npy(path: &Path, limits: ReadLimits) -> Result<Array3<u8>, Io
     let [n0, n1, n2] = shape[..] else {
         return Err(IoError::NotThreeD { path: path.to_path_buf(), shape });
     };
-    let item_size = mask_item_size(&header.descr).map_err(|kind| IoError::NotAMask {
-        path: path.to_path_buf(),
-        reason: format!("dtype {} is {kind}, not a mask; {THRESHOLD_HINT}", header.descr),
+    let (dtype, big_endian) = npy_type(&header.descr).map_err(|kind| {
+        not_a_mask(
+            path,
+            format!("dtype {} is {kind}, not a mask: save a bool, integer, float32 or float64 mask", header.descr),
+        )
     })?;
+    let item_size = dtype.size();
 
     // Check the data length against the file and the budget before allocating
     // anything, so a truncated file or a header claiming a huge shape fails cleanly.
@@ -160,8 +201,23 @@ pub(super) fn read_npy(path: &Path, limits: ReadLimits) -> Result<Array3<u8>, Io
     })?;
 
     let mut values = try_vec(path, count)?;
-    read_nonzero(&mut reader, count, item_size as usize, buffer_bytes as usize, &mut values)
-        .map_err(read_error(path))?;
+    let (reader, buffer) = (&mut reader, buffer_bytes);
+    let read = match dtype {
+        NpyType::Bool => stream_mask(reader, count, buffer, big_endian, rule, |x: u8| x != 0, &mut values),
+        NpyType::U8 => stream_mask(reader, count, buffer, big_endian, rule, |x: u8| x, &mut values),
+        NpyType::I8 => stream_mask(reader, count, buffer, big_endian, rule, |x: i8| x, &mut values),
+        NpyType::U16 => stream_mask(reader, count, buffer, big_endian, rule, |x: u16| x, &mut values),
+        NpyType::I16 => stream_mask(reader, count, buffer, big_endian, rule, |x: i16| x, &mut values),
+        NpyType::U32 => stream_mask(reader, count, buffer, big_endian, rule, |x: u32| x, &mut values),
+        NpyType::I32 => stream_mask(reader, count, buffer, big_endian, rule, |x: i32| x, &mut values),
+        NpyType::U64 => stream_mask(reader, count, buffer, big_endian, rule, |x: u64| x, &mut values),
+        NpyType::I64 => stream_mask(reader, count, buffer, big_endian, rule, |x: i64| x, &mut values),
+        // Half floats are seen as the float32 they widen to exactly, as in `_core.binarise`.
+        NpyType::F16 => stream_mask(reader, count, buffer, big_endian, rule, f16_to_f32, &mut values),
+        NpyType::F32 => stream_mask(reader, count, buffer, big_endian, rule, |x: f32| x, &mut values),
+        NpyType::F64 => stream_mask(reader, count, buffer, big_endian, rule, |x: f64| x, &mut values),
+    };
+    read.map_err(read_error(path))?.map_err(|reason| not_a_mask(path, reason))?;
     let dims = (n0 as usize, n1 as usize, n2 as usize);
     let mask = if header.fortran_order {
         Array3::from_shape_vec(dims.f(), values)
@@ -172,25 +228,28 @@ pub(super) fn read_npy(path: &Path, limits: ReadLimits) -> Result<Array3<u8>, Io
     mask.map_err(|e| corrupt(path, ".npy", e))
 }
 
-/// Read `count` elements of `item_size` bytes and append "non-zero" (1 byte each)
-/// to `out`, through a buffer of `buffer_bytes`. An integer or bool is zero
-/// exactly when all its bytes are, whatever the byte order, so no decoding is needed.
-fn read_nonzero(
-    reader: &mut impl Read,
-    count: u64,
-    item_size: usize,
-    buffer_bytes: usize,
-    out: &mut Vec<u8>,
-) -> std::io::Result<()> {
-    let mut buffer = vec![0u8; buffer_bytes];
-    let chunk_items = (buffer_bytes / item_size).max(1);
-    let mut left = count as usize;
-    while left > 0 {
-        let items = chunk_items.min(left);
-        let chunk = &mut buffer[..items * item_size];
-        reader.read_exact(chunk)?;
-        out.extend(chunk.chunks_exact(item_size).map(|item| u8::from(item.iter().any(|&b| b != 0))));
-        left -= items;
+/// The IEEE 754 half-precision float with bits `h`, widened exactly to `f32`.
+fn f16_to_f32(h: u16) -> f32 {
+    let sign = if h >> 15 == 1 { -1.0 } else { 1.0 };
+    let exponent = i32::from((h >> 10) & 0x1f);
+    let fraction = f32::from(h & 0x3ff);
+    match exponent {
+        0 => sign * fraction * 2f32.powi(-24),
+        31 if fraction == 0.0 => sign * f32::INFINITY,
+        31 => f32::NAN,
+        e => sign * (1.0 + fraction / 1024.0) * 2f32.powi(e - 15),
     }
-    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn half_floats_widen_exactly() {
+        for (bits, value) in [(0x0000, 0.0), (0x3c00, 1.0), (0xbc00, -1.0), (0x3800, 0.5), (0x0001, 2f32.powi(-24))] {
+            assert_eq!(super::f16_to_f32(bits), value, "{bits:#06x}");
+        }
+        assert_eq!(super::f16_to_f32(0x7bff), 65504.0);
+        assert_eq!(super::f16_to_f32(0xfc00), f32::NEG_INFINITY);
+        assert!(super::f16_to_f32(0x7e00).is_nan());
+    }
 }

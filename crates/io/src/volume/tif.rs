@@ -7,9 +7,10 @@
 //! pages whose strips inflate far beyond their size) therefore fails at the first
 //! page that would cross the budget.
 
-use super::{check_budget, corrupt, dims_text, read_error, spacing_in_range, ReadLimits, VolumeFile};
-use crate::IoError;
+use super::{check_budget, corrupt, dims_text, not_a_mask, read_error, spacing_in_range, ReadLimits, VolumeFile};
+use crate::{Binariser, IoError, MaskRule, Sample};
 use ndarray::Array3;
+use std::any::Any;
 use std::fs::File;
 use std::io::{BufReader, Seek};
 use std::path::Path;
@@ -22,40 +23,41 @@ const FORMAT: &str = "TIFF";
 /// the `tiff` crate's default.
 const IFD_VALUE_BYTES: u64 = 1 << 20;
 
-/// Binarise one TIFF page: integers non-zero; floats only if every value is 0 or 1.
-fn tiff_page_mask(path: &Path, page: DecodingResult, out: &mut Vec<u8>) -> Result<(), IoError> {
-    fn ints<T: Copy + PartialEq + Default>(v: Vec<T>, out: &mut Vec<u8>) {
-        out.extend(v.into_iter().map(|x| u8::from(x != T::default())));
-    }
-    fn floats(path: &Path, v: impl Iterator<Item = f64>, out: &mut Vec<u8>) -> Result<(), IoError> {
-        for x in v {
-            if x != 0.0 && x != 1.0 {
-                return Err(IoError::NotAMask {
-                    path: path.to_path_buf(),
-                    reason: format!(
-                        "floating-point TIFF with value {x}: threshold it first \
-                         (vesselflow.load_volume(path, threshold=...))"
-                    ),
-                });
-            }
-            out.push(u8::from(x == 1.0));
-        }
-        Ok(())
+/// Append the mask of one page to `out`, by the rule applied to the whole stack so
+/// far: `state` holds the stack's [`Binariser`], of the first page's value type.
+/// `Err` says why the stack is not a mask.
+fn tiff_page_mask(
+    page: DecodingResult,
+    rule: MaskRule,
+    state: &mut Option<Box<dyn Any>>,
+    out: &mut Vec<u8>,
+) -> Result<(), String> {
+    fn typed<T: Sample + 'static>(
+        v: impl IntoIterator<Item = T>,
+        rule: MaskRule,
+        state: &mut Option<Box<dyn Any>>,
+        out: &mut Vec<u8>,
+    ) -> Result<(), String> {
+        let binariser = state.get_or_insert_with(|| Box::new(Binariser::<T>::new(rule)));
+        let Some(binariser) = binariser.downcast_mut::<Binariser<T>>() else {
+            return Err(format!("a page holds {} values unlike the first page", T::NAME));
+        };
+        binariser.extend(v, out);
+        binariser.finish()
     }
     match page {
-        DecodingResult::U8(v) => ints(v, out),
-        DecodingResult::U16(v) => ints(v, out),
-        DecodingResult::U32(v) => ints(v, out),
-        DecodingResult::U64(v) => ints(v, out),
-        DecodingResult::I8(v) => ints(v, out),
-        DecodingResult::I16(v) => ints(v, out),
-        DecodingResult::I32(v) => ints(v, out),
-        DecodingResult::I64(v) => ints(v, out),
-        DecodingResult::F32(v) => floats(path, v.into_iter().map(f64::from), out)?,
-        DecodingResult::F64(v) => floats(path, v.into_iter(), out)?,
-        DecodingResult::F16(v) => floats(path, v.into_iter().map(f64::from), out)?,
+        DecodingResult::U8(v) => typed(v, rule, state, out),
+        DecodingResult::U16(v) => typed(v, rule, state, out),
+        DecodingResult::U32(v) => typed(v, rule, state, out),
+        DecodingResult::U64(v) => typed(v, rule, state, out),
+        DecodingResult::I8(v) => typed(v, rule, state, out),
+        DecodingResult::I16(v) => typed(v, rule, state, out),
+        DecodingResult::I32(v) => typed(v, rule, state, out),
+        DecodingResult::I64(v) => typed(v, rule, state, out),
+        DecodingResult::F32(v) => typed(v, rule, state, out),
+        DecodingResult::F64(v) => typed(v, rule, state, out),
+        DecodingResult::F16(v) => typed(v.into_iter().map(f32::from), rule, state, out),
     }
-    Ok(())
 }
 
 /// Pixel size from a TIFF resolution tag (pixels per unit), if present and sane.
@@ -148,7 +150,12 @@ fn check_first_directory(path: &Path, file: &mut File, file_len: u64, limits: Re
 /// ImageJ's convention: `spacing=` in the image description for axis 0 and the
 /// X/Y resolution tags (pixels per unit) for axes 2 and 1, only in ImageJ files;
 /// otherwise 1. (OME-TIFF spacing: `vesselflow.load_volume` in Python.)
-pub(super) fn read_tiff(path: &Path, spacing: Option<[f64; 3]>, limits: ReadLimits) -> Result<VolumeFile, IoError> {
+pub(super) fn read_tiff(
+    path: &Path,
+    spacing: Option<[f64; 3]>,
+    rule: MaskRule,
+    limits: ReadLimits,
+) -> Result<VolumeFile, IoError> {
     let bad = |e: tiff::TiffError| match e {
         tiff::TiffError::IoError(source) if source.kind() != std::io::ErrorKind::UnexpectedEof => {
             IoError::Read { path: path.to_path_buf(), source }
@@ -181,6 +188,7 @@ pub(super) fn read_tiff(path: &Path, spacing: Option<[f64; 3]>, limits: ReadLimi
     let page_pixels = u64::from(width) * u64::from(height);
     let mut data: Vec<u8> = Vec::new();
     let mut pages = 0u64;
+    let mut binariser = None;
     loop {
         if decoder.dimensions().map_err(bad)? != (width, height) {
             return Err(corrupt(path, FORMAT, format!("page {pages} is not {width} x {height} like page 0")));
@@ -244,7 +252,7 @@ pub(super) fn read_tiff(path: &Path, spacing: Option<[f64; 3]>, limits: ReadLimi
             other => bad(other),
         })?;
         let before = data.len();
-        tiff_page_mask(path, page, &mut data)?;
+        tiff_page_mask(page, rule, &mut binariser, &mut data).map_err(|reason| not_a_mask(path, reason))?;
         if (data.len() - before) as u64 != page_pixels {
             return Err(corrupt(path, FORMAT, format!("page {pages} does not hold {width}×{height} samples")));
         }
