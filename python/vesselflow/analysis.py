@@ -113,7 +113,8 @@ def branches(graph: VesselGraph) -> pd.DataFrame:
     - ``euclidean-distance``: straight distance between the end nodes (0 for cycles).
     - ``coord-src-{0,1,2}``, ``coord-dst-{0,1,2}``: end positions, array axis order.
     - ``tortuosity``: ``branch-distance / euclidean-distance`` (1 for a straight
-      branch, ``inf`` when the ends coincide, e.g. cycles).
+      branch; NaN when the ends coincide, e.g. cycles, where a chord ratio is
+      undefined, so that summaries such as ``describe()`` skip them without warnings).
     - ``radius-mean``, ``radius-sd``: mean and standard deviation of the radius along
       the branch, weighted by length: the radius is taken as linear along each edge
       and integrated exactly (plain node values if the branch has zero length).
@@ -146,7 +147,7 @@ def branches(graph: VesselGraph) -> pd.DataFrame:
     spread = np.bincount(owner, weights=length * (a * a + a * b + b * b) / 3, minlength=n)
     sd = np.sqrt(np.divide(spread, total, out=node_sd**2, where=has_length))
     with np.errstate(divide="ignore", invalid="ignore"):
-        tortuosity = np.where(chord > 0, total / chord, np.inf)
+        tortuosity = np.where(chord > 0, total / chord, np.nan)
 
     columns: dict[str, object] = {
         "skeleton-id": np.array(_components(traced), dtype=np.int64),

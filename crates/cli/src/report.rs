@@ -25,7 +25,15 @@ fn describe(p: &Progress) -> String {
         "contract" => {
             format!("contract: iteration {}, {} nodes, cycle area / stop level {:.3}", p.iteration, p.nodes, p.measure)
         }
-        "refine" => format!("refine: iteration {}, {} nodes, {} cycles collapsed", p.iteration, p.nodes, p.measure),
+        "refine" => {
+            let n = p.measure as u64;
+            format!(
+                "refine: iteration {}, {} nodes, {n} cycle{} collapsed",
+                p.iteration,
+                p.nodes,
+                if n == 1 { "" } else { "s" }
+            )
+        }
         "output" => format!("output: {} nodes", p.nodes),
         other => format!("{other}: iteration {}, {} nodes, measure {}", p.iteration, p.nodes, p.measure),
     }
