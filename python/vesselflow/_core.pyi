@@ -17,6 +17,7 @@ __all__ = [
     "cli_main",
     "memory_estimate",
     "param_defaults",
+    "usable_memory",
     "write_graph",
 ]
 
@@ -50,6 +51,10 @@ def memory_estimate(
     threads: int = 0,
 ) -> int:
     """Estimated peak bytes beyond the mask of a run (the ``max_memory`` guard's figure)."""
+
+def usable_memory() -> int | None:
+    """Bytes this process may still allocate (available memory, cgroup and
+    ``RLIMIT_AS`` room, the least); ``None`` where none is known."""
 
 def param_defaults() -> list[tuple[str, _ParamValue]]:
     """Every parameter with its default, in documentation order."""

@@ -110,46 +110,9 @@ def _size(n: int) -> str:
 
 
 def _available_memory() -> int | None:
-    """Bytes this process may still allocate, as far as the system tells: the least of
-    the available memory, the cgroup's limit minus its usage and the address-space limit
-    minus the process's size (Linux). None if none of them is known."""
-    bounds: list[int] = []
-    try:
-        with open("/proc/meminfo", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    bounds.append(int(line.split()[1]) * 1024)
-    except (OSError, ValueError, IndexError):
-        pass
-    v2 = Path("/sys/fs/cgroup")
-    try:  # this process's cgroup (v2): the line "0::/its/path"
-        with open("/proc/self/cgroup", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("0::/"):
-                    v2 = v2 / line.strip()[4:]
-    except OSError:
-        pass
-    v1 = Path("/sys/fs/cgroup/memory")
-    for limit_file, usage_file in (
-        (v2 / "memory.max", v2 / "memory.current"),
-        (v1 / "memory.limit_in_bytes", v1 / "memory.usage_in_bytes"),
-    ):
-        try:
-            limit = limit_file.read_text().strip()
-            if limit != "max" and int(limit) < 2**60:  # v1 writes a huge number for none
-                bounds.append(int(limit) - int(usage_file.read_text()))
-        except (OSError, ValueError):
-            pass
-    try:
-        import resource
-
-        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-        if soft != resource.RLIM_INFINITY:
-            with open("/proc/self/statm", encoding="ascii") as f:
-                bounds.append(soft - int(f.read().split()[0]) * resource.getpagesize())
-    except (ImportError, OSError, ValueError, IndexError):
-        pass
-    return min(bounds) if bounds else None
+    """Bytes this process may still allocate (the core's rule, shared with
+    ``max_memory="auto"``); None where the system does not tell."""
+    return _core.usable_memory()
 
 
 def load_volume(

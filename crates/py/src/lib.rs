@@ -23,6 +23,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(binarise::binarise, m)?)?;
     m.add_function(wrap_pyfunction!(params::param_defaults, m)?)?;
     m.add_function(wrap_pyfunction!(memory::memory_estimate, m)?)?;
+    m.add_function(wrap_pyfunction!(memory::usable_memory, m)?)?;
     m.add_function(wrap_pyfunction!(graph_io::write_graph, m)?)?;
     m.add_function(wrap_pyfunction!(cli::cli_main, m)?)?;
     Ok(())
