@@ -1,34 +1,51 @@
-"""Fidelity benchmark: vesselflow and its peers against ground truth, shaped like the paper's
-Tables I and II.
+"""Fidelity benchmark: vesselflow and its peers against ground truth, on seeds it was not
+tuned on.
 
 One command::
 
-    python benches/fidelity.py [--trees 10] [--jobs 2] [--out benches/results]
+    python benches/fidelity.py                         # the full report (tuning + held-out + real)
+    python benches/fidelity.py --quick                 # a ~2 minute guard (prints, writes nothing)
+    python benches/fidelity.py --set tuning --no-real  # what defaults may be chosen on
 
 writes ``fidelity.md`` (and ``fidelity_rows.csv``, every number behind it, plus one PNG per
-dataset) to ``--out``; ``--sweep`` also runs the sensitivity sweep into ``sensitivity.md``.
+dataset) to ``--out``; ``--sweep`` also runs the sensitivity sweep (tuning set only) into
+``sensitivity.md``.
 
-Datasets
-    - ``tree``: ``vesselflow.synth.vascular_tree`` at 128³, 160³ and 192³ with 16, 32 and 64
-      terminals (cycling, as the paper's three branching levels), each with the paper's
-      boundary noise at levels D0, D1 and D2 (``vesselflow.synth.add_bubble_noise``);
-    - ``capillary``: ``vesselflow.synth.capillary_network``, loopy meshes with a known cycle
-      rank;
-    - the real and third-party volumes in ``../shared/data`` (read in place, never copied:
-      several are licensed for evaluation only): the vmtk CT aorta at two resolutions
-      (centreline and radii from vmtkcenterlines), the VascuSynth trees (generator ground
-      truth; segments thinner than half a voxel are dropped from the truth, as the data
-      README advises, because the masks cannot resolve them), the vesselsynth volumes
-      (a voxel skeleton as truth: geometry only), and masks without truth (two-photon,
-      light-sheet, the authors' demo volumes): topology and time only.
+Seeds. Every synthetic family draws its volumes from two fixed, disjoint seed sets:
+``tuning`` (seeds 0, 1, 2, ...) and ``heldout`` (seeds 1000, 1001, ...). Defaults may be
+chosen on the tuning set only (``--sweep`` runs on it); the report's headline is the held-out
+set. ``--set`` picks one or both (default both).
+
+Synthetic families (:data:`FAMILIES`; each noisy one at the paper's bubble-noise levels D0, D1
+and D2, ``vesselflow.synth.add_bubble_noise``, noise seed = 10000 + volume seed):
+    - ``forest``: ``vesselflow.synth.vascular_forest`` at 128³, the independently written
+      family: space-colonisation trees from the faces inward, Murray-like radii 6.5 -> 1.5
+      voxels with a 6 % ripple that is part of the truth radius, anastomoses, touching and
+      crossing vessels, thick vessels with thin side branches; voxel-centre rasterisation;
+    - ``lattice``: ``vesselflow.synth.capillary_network`` at 96³ with radii 1.4-2.4, jitter
+      and bend 0.2, voxel-centre rasterisation (``supersample=1``), clean: a loopy, curved,
+      jittered capillary lattice whose mask has as many loops as the truth's cycle rank;
+    - ``tree``: ``vesselflow.synth.vascular_tree`` (CCO, VascuSynth-like, partial-volume
+      rasterisation) at 128³/160³/192³ with 16/32/64 terminals, the paper's own kind of set;
+    - ``capillary``: ``vesselflow.synth.capillary_network`` with its defaults (partial
+      volume), clean.
+
+Real and third-party volumes in ``../shared/data`` (read in place, never copied: several are
+licensed for evaluation only; ``--no-real`` skips them, and the package never needs them):
+the vmtk CT aorta at two resolutions, the VascuSynth trees (segments thinner than half a voxel
+dropped from the truth, as the data README advises), the vesselsynth volumes (a voxel skeleton
+as truth: geometry only), and masks without truth (two-photon, light-sheet, the authors' demo
+volumes): topology and time only.
 
 Methods are those of ``vesselflow.compare``; one that is not installed is reported, not run.
 
-Metrics (``vesselflow.metrics``), all at the tolerance ``sigma = --sigma`` base cells (the
-smallest voxel spacing): NetMets proper and the authors' VascGraph variant (GFNR, GFPR, CFNR,
-CFPR), DIADEM on trees, the radius MAPE over graph nodes within ``sigma`` of the truth (and
-the authors' normalised variant), and the topology (graph components against 26-connected
-mask components; graph cycle rank against the truth's, or the mask's loops).
+Metrics (``vesselflow.metrics``) at ``sigma`` = 2 base cells (the smallest voxel spacing; the
+headline) and NetMets at 3 beside it (``--sigmas``): NetMets proper (GFNR, GFPR, CFNR,
+CFPR), the authors' VascGraph variant and DIADEM on CCO trees and real trees, radius bias and
+MAPE over graph nodes within sigma of the truth (all, and per radius band 1-2, 2-3, 3-5,
+5-10 voxels), true junctions with a graph node within sigma, the graph's cycle rank against
+the first Betti number of the noise-free mask, edge length outside the mask, nodes outside
+the mask dilated by one voxel, and graph components against 26-connected mask components.
 
 Cases run in ``--jobs`` worker processes, each method single-threaded, so every method's
 time is one core's.
@@ -42,7 +59,6 @@ import datetime
 import os
 import platform
 import sys
-import tempfile
 import time
 import traceback
 from collections.abc import Iterable, Sequence
@@ -58,20 +74,49 @@ import pandas as pd
 import vesselflow
 from vesselflow import VesselGraph, compare, metrics, synth
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from synthetic import write_atomic  # benches/ is not a package: its folder is on the path
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 DATA = ROOT.parent / "shared" / "data"
 
+
+def _extension() -> str:
+    """Which compiled core this process loaded (workers fork from it, so theirs too)."""
+    path = Path(vesselflow._core.__file__ or "")
+    try:
+        built = datetime.datetime.fromtimestamp(path.stat().st_mtime, datetime.timezone.utc)
+    except OSError:
+        return f"{path.name} (replaced since it was loaded)"
+    return f"{path.name} built {built:%Y-%m-%d %H:%M} UTC"
+
+
+#: Recorded at import, before any worker starts: a rebuild during a run does not change it.
+EXTENSION = _extension()
+
 LEVELS = ("D0", "D1", "D2")
+#: First seed of each seed set; a family's i-th volume of a set has seed ``start + i``.
+SEED_SETS = {"tuning": 0, "heldout": 1000}
+#: Noise seed = NOISE_SEED + volume seed.
+NOISE_SEED = 10000
+#: Synthetic families: noisy (D0-D2) or clean, and how many volumes per set by default.
+FAMILIES = {"forest": (True, 8), "lattice": (False, 3), "tree": (True, 3), "capillary": (False, 2)}
+FOREST_SHAPE = (128, 128, 128)
+LATTICE_SHAPE = (96, 96, 96)
 TREE_SHAPES = (128, 160, 192)
 TREE_TERMINALS = (16, 32, 64)
 CAPILLARY_SHAPE = (96, 96, 96)
-#: Methods too slow for every case (CGAL's mesh skeleton: 30-60 s per 128^3 volume): they run
-#: on the first ``--slow-trees`` trees, the first capillary network and one volume per real
+#: Methods too slow for every case (CGAL's mesh skeleton: 2-80 s per volume): they run on
+#: the first ``--slow-cases`` volumes of each family, level and set and one volume per real
 #: dataset, and the report says so.
 SLOW_METHODS = ("mesh", "pointcloud")
+#: Tolerances (base cells): the first is the headline.
+SIGMAS = (2.0, 3.0)
+#: Bootstrap resamples for the spread of the held-out means.
+BOOTSTRAP = 2000
 
-#: Real volumes with a centreline graph: (file, is a tree).
+#: Real volumes with a centreline graph.
 REAL_GRAPH_TRUTH = (
     "aorta_ct_04mm",
     "aorta_ct_03mm",
@@ -138,10 +183,18 @@ METRIC_LABELS = {
     "v_cfpr": "CFPR ↓",
     "diadem": "DIADEM (%) ↑",
     "mape": "MAP (%) ↓",
+    "bias": "radius bias (%)",
     "mape_norm": "MAP, normalised (%) ↓",
+    "junctions": "junctions found ↑",
+    "loop_error": "loop error (% of clean-mask loops) ↓",
+    "edge_outside": "edge length outside mask (%) ↓",
+    "nodes_outside": "nodes outside dilated mask ↓",
+    "components_equal": "components 1:1 ↑",
     "seconds": "time (s) ↓",
 }
-HIGHER_IS_BETTER = {"diadem"}
+HIGHER_IS_BETTER = {"diadem", "junctions", "components_equal"}
+#: Radius bands (voxels) of the per-band table.
+BANDS = tuple(f"{lo:g}-{hi:g}" for lo, hi in metrics.RADIUS_BANDS)
 
 
 @dataclass(frozen=True)
@@ -152,8 +205,9 @@ class Recipe:
     name: str
     level: str = ""
     seed: int = 0
-    shape: int = 0
-    terminals: int = 0
+    #: ``tuning`` or ``heldout`` for synthetic cases, ``real`` otherwise.
+    seed_set: str = "real"
+    index: int = 0
     figure: bool = False
     #: Run the slow methods (``SLOW_METHODS``) on this case too.
     slow: bool = False
@@ -169,30 +223,50 @@ class Case:
     truth: VesselGraph | None
     tree: bool
     graph_truth: bool = True
+    #: First Betti number of the noise-free mask: the loop target.
+    clean_loops: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def recipes(trees: int, capillaries: int, real: bool, slow_trees: int = 0) -> list[Recipe]:
-    """Every case of the report, in a fixed order."""
+def synthetic_recipes(
+    counts: dict[str, int], seed_sets: Sequence[str], slow_cases: int, levels: Sequence[str]
+) -> list[Recipe]:
+    """The synthetic cases: ``counts[family]`` volumes of each family per seed set, at every
+    noise level for noisy families; figures from the first held-out volume (else tuning)."""
     out = []
-    for i in range(trees):
-        shape, terminals = TREE_SHAPES[i % 3], TREE_TERMINALS[(i // 3) % 3]
-        for level in LEVELS:
-            first = i == 0 and level == "D1"
-            out.append(
-                Recipe("tree", f"tree{i:02d}", level, i, shape, terminals, first, i < slow_trees)
-            )
-    for i in range(capillaries):
-        out.append(Recipe("capillary", f"capillary{i:02d}", seed=i, figure=i == 0, slow=i == 0))
-    if real:
-        seen: set[str] = set()
-        for name in REAL_GRAPH_TRUTH + REAL_SKELETON_TRUTH + REAL_NO_TRUTH:
-            if (DATA / f"{name}.npz").exists():
-                dataset = real_dataset(name)
-                first = dataset not in seen
-                # The two-photon stacks are 0.6-1.4 M voxels: too big for the mesh skeleton.
-                out.append(Recipe(dataset, name, figure=first, slow=first and dataset != "tpm"))
-                seen.add(dataset)
+    figure_set = "heldout" if "heldout" in seed_sets else seed_sets[0]
+    for seed_set in seed_sets:
+        for family, (noisy, _) in FAMILIES.items():
+            for i in range(counts.get(family, 0)):
+                seed = SEED_SETS[seed_set] + i
+                for level in levels if noisy else ("",):
+                    first = seed_set == figure_set and i == 0 and level in ("", "D1")
+                    out.append(
+                        Recipe(
+                            family,
+                            f"{family}{seed:04d}",
+                            level,
+                            seed,
+                            seed_set,
+                            i,
+                            first,
+                            i < slow_cases,
+                        )
+                    )
+    return out
+
+
+def real_recipes() -> list[Recipe]:
+    """Every volume of ``../shared/data`` this report knows, in a fixed order."""
+    out = []
+    seen: set[str] = set()
+    for name in REAL_GRAPH_TRUTH + REAL_SKELETON_TRUTH + REAL_NO_TRUTH:
+        if (DATA / f"{name}.npz").exists():
+            dataset = real_dataset(name)
+            first = dataset not in seen
+            # The two-photon stacks are 0.6-1.4 M voxels: too big for the mesh skeleton.
+            out.append(Recipe(dataset, name, figure=first, slow=first and dataset != "tpm"))
+            seen.add(dataset)
     return out
 
 
@@ -233,14 +307,8 @@ def skeleton_graph(skeleton: np.ndarray, spacing: np.ndarray) -> VesselGraph:
 
 
 def build(recipe: Recipe) -> Case:
-    if recipe.dataset == "tree":
-        shape = (recipe.shape,) * 3
-        mask, truth = synth.vascular_tree(shape, n_terminals=recipe.terminals, seed=recipe.seed)
-        mask = synth.add_bubble_noise(mask, recipe.level, seed=1000 + recipe.seed)
-        return Case("tree", recipe.name, recipe.level, mask, truth.spacing, truth, tree=True)
-    if recipe.dataset == "capillary":
-        mask, truth = synth.capillary_network(CAPILLARY_SHAPE, seed=recipe.seed)
-        return Case("capillary", recipe.name, "", mask, truth.spacing, truth, tree=False)
+    if recipe.dataset in FAMILIES:
+        return build_synthetic(recipe)
     with np.load(DATA / f"{recipe.name}.npz") as d:
         mask = d["mask"].astype(bool)
         spacing = np.asarray(d["spacing"], np.float64)
@@ -257,8 +325,41 @@ def build(recipe: Recipe) -> Case:
     return Case(recipe.dataset, recipe.name, "", mask, spacing, None, tree=False)
 
 
-def score(case: Case, graph: VesselGraph, sigma_cells: float) -> dict[str, Any]:
-    """Every metric of one graph against its case."""
+def build_synthetic(recipe: Recipe) -> Case:
+    """One synthetic volume: the clean mask's loops are measured before the noise."""
+    seed = recipe.seed
+    if recipe.dataset == "forest":
+        clean, truth = synth.vascular_forest(FOREST_SHAPE, seed=seed)
+    elif recipe.dataset == "lattice":
+        clean, truth = synth.capillary_network(
+            LATTICE_SHAPE, seed=seed, radius=(1.4, 2.4), jitter=0.2, bend=0.2, supersample=1
+        )
+    elif recipe.dataset == "tree":
+        shape = (TREE_SHAPES[recipe.index % 3],) * 3
+        terminals = TREE_TERMINALS[(recipe.index // 3) % 3]
+        clean, truth = synth.vascular_tree(shape, n_terminals=terminals, seed=seed)
+    else:
+        clean, truth = synth.capillary_network(CAPILLARY_SHAPE, seed=seed)
+    loops = int(metrics.topology(clean, truth)["mask_loops"])
+    mask = (
+        synth.add_bubble_noise(clean, recipe.level, seed=NOISE_SEED + seed)
+        if recipe.level
+        else clean
+    )
+    return Case(
+        recipe.dataset,
+        recipe.name,
+        recipe.level,
+        mask,
+        truth.spacing,
+        truth,
+        tree=recipe.dataset == "tree",
+        clean_loops=loops,
+    )
+
+
+def score(case: Case, graph: VesselGraph, sigmas: Sequence[float]) -> dict[str, Any]:
+    """Every metric of one graph against its case; ``sigmas[0]`` is the headline tolerance."""
     row: dict[str, Any] = {}
     topo = metrics.topology(case.mask, graph)
     row.update(
@@ -268,30 +369,55 @@ def score(case: Case, graph: VesselGraph, sigma_cells: float) -> dict[str, Any]:
         mask_loops=topo["mask_loops"],
         graph_cycles=topo["graph_cycles"],
     )
+    clean = topo["mask_loops"] if case.clean_loops is None else case.clean_loops
+    row.update(
+        clean_loops=clean,
+        loop_diff=abs(topo["graph_cycles"] - clean),
+    )
+    inside = metrics.mask_fidelity(case.mask, graph)
+    row.update(
+        nodes_outside=inside["nodes_outside_dilated"],
+        edge_outside=100.0 * inside["edge_outside"],
+    )
     if case.truth is None:
         return row
-    sigma = sigma_cells * float(np.min(case.spacing))
-    nm = metrics.netmets(case.truth, graph, sigma)
-    row.update(gfnr=nm["gfnr"], gfpr=nm["gfpr"])
-    if case.graph_truth:
-        row.update(cfnr=nm["cfnr"], cfpr=nm["cfpr"])
-        vg = metrics.netmets(case.truth, graph, sigma, mode="vascgraph")
-        row.update({f"v_{k}": vg[k] for k in GEOMETRY})
-        row["truth_cycles"] = case.truth.n_edges - case.truth.n_nodes + components(case.truth)
-        if graph.n_nodes:
-            row["mape"] = metrics.radius_error(case.truth, graph, sigma)["mape"]
-            row["mape_norm"] = metrics.radius_error(case.truth, graph, sigma, normalised=True)[
-                "mape"
-            ]
-        if case.tree:
-            row["diadem"] = 100.0 * metrics.diadem(
-                case.truth,
-                graph,
-                xy_threshold=sigma,
-                z_threshold=sigma,
-                xy_path_thresh=DIADEM_PATH_THRESHOLD,
-                z_axis=None,
-            )
+    base = float(np.min(case.spacing))
+    sigma = sigmas[0] * base
+    for k, s in enumerate(sigmas):
+        nm = metrics.netmets(case.truth, graph, s * base)
+        suffix = "" if k == 0 else f"_s{s:g}"
+        row.update({f"gfnr{suffix}": nm["gfnr"], f"gfpr{suffix}": nm["gfpr"]})
+        if case.graph_truth:
+            row.update({f"cfnr{suffix}": nm["cfnr"], f"cfpr{suffix}": nm["cfpr"]})
+    if not case.graph_truth:
+        return row
+    junctions = metrics.junction_recall(case.truth, graph, sigma)
+    row.update(truth_junctions=junctions["n_junctions"], junctions=junctions["recall"])
+    row["truth_cycles"] = case.truth.n_edges - case.truth.n_nodes + components(case.truth)
+    if graph.n_nodes:
+        err = metrics.radius_error(case.truth, graph, sigma)
+        row["mape"] = err["mape"]
+        row["bias"] = metrics.radius_bands(case.truth, graph, sigma, ((0.0, np.inf),))["0-inf"][
+            "bias"
+        ]
+        bands = metrics.radius_bands(case.truth, graph, sigma)
+        for band, b in bands.items():
+            row.update({f"n_{band}": b["n"], f"bias_{band}": b["bias"], f"mape_{band}": b["mape"]})
+    if case.dataset in FAMILIES and case.dataset != "tree":
+        return row
+    vg = metrics.netmets(case.truth, graph, sigma, mode="vascgraph")
+    row.update({f"v_{k}": vg[k] for k in GEOMETRY})
+    if graph.n_nodes:
+        row["mape_norm"] = metrics.radius_error(case.truth, graph, sigma, normalised=True)["mape"]
+    if case.tree:
+        row["diadem"] = 100.0 * metrics.diadem(
+            case.truth,
+            graph,
+            xy_threshold=sigma,
+            z_threshold=sigma,
+            xy_path_thresh=DIADEM_PATH_THRESHOLD,
+            z_axis=None,
+        )
     return row
 
 
@@ -315,7 +441,10 @@ def warm_up(methods: Sequence[str]) -> None:
 
 
 def evaluate(
-    recipe: Recipe, methods: Sequence[str], sigma_cells: float, params: dict[str, Any] | None = None
+    recipe: Recipe,
+    methods: Sequence[str],
+    sigmas: Sequence[float],
+    params: dict[str, Any] | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Run ``methods`` on one case and score them; the figure's material when asked for."""
     case = build(recipe)
@@ -324,6 +453,8 @@ def evaluate(
         "dataset": case.dataset,
         "case": case.name,
         "level": case.level,
+        "set": recipe.seed_set,
+        "seed": recipe.seed if recipe.dataset in FAMILIES else np.nan,
         "foreground": int(case.mask.sum()),
         "shape": "x".join(map(str, case.mask.shape)),
     }
@@ -342,7 +473,7 @@ def evaluate(
                     converged=graph.info["converged"],
                     stalled=graph.info["stalled"],
                 )
-            row.update(score(case, graph, sigma_cells))
+            row.update(score(case, graph, sigmas))
             if recipe.figure:
                 figure[method] = graph
         except Exception as exc:  # a failing method is a row, not a crash of the report
@@ -358,14 +489,14 @@ def evaluate(
 def run_all(
     todo: Sequence[Recipe],
     methods: Sequence[str],
-    sigma_cells: float,
+    sigmas: Sequence[float],
     jobs: int,
     params: dict[str, Any] | None = None,
     label: str = "",
 ) -> tuple[pd.DataFrame, dict[str, dict[str, Any]]]:
     rows, figures = [], {}
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = [pool.submit(evaluate, r, methods, sigma_cells, params) for r in todo]
+        futures = [pool.submit(evaluate, r, methods, sigmas, params) for r in todo]
         for k, (recipe, fut) in enumerate(zip(todo, futures)):
             case_rows, figure = fut.result()
             rows.extend(case_rows)
@@ -389,7 +520,219 @@ def mean_sd(values: pd.Series, digits: int) -> tuple[float, str]:
 
 
 def digits_for(metric: str) -> int:
-    return 1 if metric in ("diadem", "mape", "mape_norm") else 2
+    return 1 if metric in ("diadem", "mape", "mape_norm", "bias", "seconds") else 2
+
+
+def best(means: Sequence[float], metric: str) -> int:
+    arr = np.array(means, float)
+    if np.all(np.isnan(arr)):
+        return -1
+    return int(np.nanargmax(arr) if metric in HIGHER_IS_BETTER else np.nanargmin(arr))
+
+
+def ok_rows(part: pd.DataFrame) -> pd.DataFrame:
+    """Rows of methods that ran (no ``error``)."""
+    return part[part["error"].isna()] if "error" in part else part
+
+
+def group_of(df: pd.DataFrame) -> pd.Series:
+    """``forest D1``, ``lattice``, ...: a synthetic family and its noise level."""
+    return (df.dataset + " " + df.level.fillna("")).str.strip()
+
+
+def loop_error(part: pd.DataFrame) -> float:
+    """Summed ``|graph cycles - clean-mask loops|`` as a percentage of the summed clean-mask
+    loops (the issue's loop target)."""
+    clean = float(part.clean_loops.sum())
+    return 100.0 * float(part.loop_diff.sum()) / clean if clean else np.nan
+
+
+#: Columns of the headline table: (key, header, how to reduce a group's rows, digits).
+HEADLINE = (
+    ("gfnr", "GFNR ↓", "mean", 3),
+    ("gfpr", "GFPR ↓", "mean", 3),
+    ("cfnr", "CFNR ↓", "mean", 3),
+    ("cfpr", "CFPR ↓", "mean", 3),
+    ("mape", "MAPE % ↓", "mean", 1),
+    ("bias", "radius bias %", "mean", 1),
+    ("components_equal", "components 1:1 ↑", "count", 0),
+    ("loops", "cycles / clean-mask loops", "loops", 0),
+    ("loop_error", "loop error % ↓", "loop_error", 0),
+    ("junctions", "junctions found % ↑", "percent", 0),
+    ("edge_outside", "edge length outside % ↓", "mean", 2),
+    ("nodes_outside", "cases with a node outside dilated mask ↓", "count_positive", 0),
+    ("seconds", "time s", "mean", 2),
+)
+
+
+def reduce_column(part: pd.DataFrame, key: str, how: str, digits: int) -> tuple[float, str]:
+    """One cell of a summary table: its value (for picking the best) and its text."""
+    if not len(part):
+        return np.nan, "-"
+    if how == "count":
+        n = int(part[key].fillna(False).astype(bool).sum())
+        return float(n) / len(part), f"{n}/{len(part)}"
+    if how == "count_positive":
+        n = int((part[key].fillna(0) > 0).sum())
+        return float(n) / len(part), f"{n}/{len(part)}"
+    if how == "loops":
+        return np.nan, f"{part.graph_cycles.mean():.1f} / {part.clean_loops.mean():.1f}"
+    if how == "loop_error":
+        v = loop_error(part)
+        return v, "-" if np.isnan(v) else f"{v:.0f}"
+    if key not in part or part[key].isna().all():
+        return np.nan, "-"
+    v = float(part[key].mean()) * (100.0 if how == "percent" else 1.0)
+    return v, f"{v:.{digits}f}"
+
+
+def headline_table(df: pd.DataFrame, methods: Sequence[str]) -> str:
+    """Rows: family (and level) x method; columns: :data:`HEADLINE`, means over the cases;
+    the best method of each family in bold."""
+    lines = [
+        "| family | method | cases | " + " | ".join(h for _, h, _, _ in HEADLINE) + " |",
+        "|---|---|---:|" + "---:|" * len(HEADLINE),
+    ]
+    for group, part in df.groupby(group_of(df), sort=False):
+        cells: dict[str, list[str]] = {}
+        for key, _, how, digits in HEADLINE:
+            values, texts = [], []
+            for method in methods:
+                v, text = reduce_column(ok_rows(part[part.method == method]), key, how, digits)
+                values.append(v)
+                texts.append(text)
+            pick = key if key not in ("bias", "seconds", "loops") else ""
+            if key == "bias":
+                values = [abs(v) for v in values]
+                pick = "mape"
+            bold = best(values, pick) if pick else -1
+            cells[key] = [f"**{t}**" if i == bold and t != "-" else t for i, t in enumerate(texts)]
+        for i, method in enumerate(methods):
+            n = len(ok_rows(part[part.method == method]))
+            if not len(part[part.method == method]):
+                continue
+            row = " | ".join(cells[key][i] for key, _, _, _ in HEADLINE)
+            lines.append(f"| {group} | {method} | {n} | {row} |")
+    return "\n".join(lines) + "\n"
+
+
+def versus_table(df: pd.DataFrame, methods: Sequence[str]) -> str:
+    """Held-out against tuning, every level of a family together: ``held-out / tuning``."""
+    keys = ("gfnr", "gfpr", "cfnr", "cfpr", "mape", "junctions", "loop_error")
+    lines = [
+        "| family | method | " + " | ".join(METRIC_LABELS[k] for k in keys) + " |",
+        "|---|---|" + "---:|" * len(keys),
+    ]
+    for family, part in df.groupby("dataset", sort=False):
+        for method in methods:
+            p = ok_rows(part[part.method == method])
+            if not len(p):
+                continue
+            cells = []
+            for key in keys:
+                pair = []
+                for seed_set in ("heldout", "tuning"):
+                    s = p[p.set == seed_set]
+                    how = (
+                        "percent" if key == "junctions" else key if key == "loop_error" else "mean"
+                    )
+                    pair.append(
+                        reduce_column(
+                            s, key, how, 1 if key in ("mape",) else 3 if key in GEOMETRY else 0
+                        )[1]
+                    )
+                cells.append(" / ".join(pair))
+            lines.append(f"| {family} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def sigma_table(df: pd.DataFrame, methods: Sequence[str], sigmas: Sequence[float]) -> str:
+    """NetMets at every tolerance, side by side: ``sigma 2 / sigma 3``."""
+    lines = [
+        "| family | method | "
+        + " | ".join(
+            f"{METRIC_LABELS[k]} (sigma {' / '.join(f'{s:g}' for s in sigmas)})" for k in GEOMETRY
+        )
+        + " |",
+        "|---|---|" + "---:|" * len(GEOMETRY),
+    ]
+    for group, part in df.groupby(group_of(df), sort=False):
+        for method in methods:
+            p = ok_rows(part[part.method == method])
+            if not len(p):
+                continue
+            cells = []
+            for key in GEOMETRY:
+                texts = []
+                for k, s in enumerate(sigmas):
+                    col = key if k == 0 else f"{key}_s{s:g}"
+                    texts.append(
+                        f"{p[col].mean():.3f}" if col in p and p[col].notna().any() else "-"
+                    )
+                cells.append(" / ".join(texts))
+            lines.append(f"| {group} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def band_table(df: pd.DataFrame, methods: Sequence[str]) -> str:
+    """Radius bias and MAPE per band of truth radius, matches pooled over a family's cases
+    (every level): ``bias / MAPE (matched nodes)``."""
+    lines = [
+        "| family | method | " + " | ".join(f"r {b} vox: bias / MAPE % (n)" for b in BANDS) + " |",
+        "|---|---|" + "---:|" * len(BANDS),
+    ]
+    for family, part in df.groupby("dataset", sort=False):
+        for method in methods:
+            p = ok_rows(part[part.method == method])
+            if not len(p) or f"n_{BANDS[0]}" not in p:
+                continue
+            cells = []
+            for band in BANDS:
+                n = p[f"n_{band}"].fillna(0)
+                total = float(n.sum())
+                if total == 0:
+                    cells.append("-")
+                    continue
+                bias = float((n * p[f"bias_{band}"].fillna(0)).sum()) / total
+                mape = float((n * p[f"mape_{band}"].fillna(0)).sum()) / total
+                cells.append(f"{bias:+.1f} / {mape:.1f} ({int(total)})")
+            lines.append(f"| {family} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def bootstrap_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float]:
+    """95 % percentile bootstrap interval of the mean (fixed seed: the report is
+    reproducible)."""
+    rng = np.random.default_rng(seed)
+    means = rng.choice(values, size=(BOOTSTRAP, len(values)), replace=True).mean(axis=1)
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
+def spread_table(df: pd.DataFrame, method: str) -> str:
+    """Mean ± sd over cases and the 95 % bootstrap interval of the mean, per family (levels
+    pooled) and per family and level: the noise floor a change must beat."""
+    keys = ("gfnr", "gfpr", "cfnr", "cfpr", "mape", "junctions", "edge_outside")
+    lines = [
+        "| family | cases | " + " | ".join(METRIC_LABELS[k] for k in keys) + " |",
+        "|---|---:|" + "---:|" * len(keys),
+    ]
+    ours = ok_rows(df[df.method == method])
+    groups = [(f, p) for f, p in ours.groupby("dataset", sort=False)]
+    groups += [(g, p) for g, p in ours.groupby(group_of(ours), sort=False) if " " in g]
+    for name, part in groups:
+        cells = []
+        for key in keys:
+            v = part[key].dropna().to_numpy(float) if key in part else np.empty(0)
+            if not len(v):
+                cells.append("-")
+                continue
+            lo, hi = bootstrap_ci(v)
+            d = 1 if key in ("mape",) else 3
+            sd = v.std(ddof=1) if len(v) > 1 else 0.0
+            cells.append(f"{v.mean():.{d}f} ± {sd:.{d}f} [{lo:.{d}f}, {hi:.{d}f}]")
+        lines.append(f"| {name} | {len(part)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def table_by_level(
@@ -420,13 +763,6 @@ def table_by_level(
             lines.append(f"| {level} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
-
-
-def best(means: Sequence[float], metric: str) -> int:
-    arr = np.array(means, float)
-    if np.all(np.isnan(arr)):
-        return -1
-    return int(np.nanargmax(arr) if metric in HIGHER_IS_BETTER else np.nanargmin(arr))
 
 
 def table_by_case(
@@ -522,17 +858,6 @@ def figure(path: Path, dataset: str, material: dict[str, Any]) -> None:
     write_atomic(path, lambda f: fig.savefig(f, format="png"))
 
 
-def write_atomic(path: Path, write: Any) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def header(methods: Sequence[str], args: argparse.Namespace) -> str:
     versions = []
     for pkg in (
@@ -542,8 +867,7 @@ def header(methods: Sequence[str], args: argparse.Namespace) -> str:
         "scikit-image",
         "skan",
         "kimimaro",
-        "skeletor",
-        "pc-skeletor",
+        "compas_cgal",
     ):
         with contextlib.suppress(metadata.PackageNotFoundError):
             versions.append(f"{pkg} {metadata.version(pkg)}")
@@ -551,20 +875,27 @@ def header(methods: Sequence[str], args: argparse.Namespace) -> str:
     out = [
         f"Generated by `python benches/fidelity.py {' '.join(sys.argv[1:])}` on "
         f"{datetime.date.today()} ({platform.machine()}, {os.cpu_count()} cores; "
-        f"{', '.join(versions)}).",
+        f"{', '.join(versions)}; source {source_version()}; extension {EXTENSION}).",
         "",
         f"Methods run: {', '.join(methods)}. "
         + "".join(f"Not run: {m} ({why}). " for m, why in missing.items())
         + "SOAX and VTrails (in the paper's tables) do not install here: SOAX is a Qt desktop "
         "program and VTrails a MATLAB toolbox, with no Python package.",
         "",
-        f"Tolerance sigma = {args.sigma} base cells (the smallest voxel spacing) for every NetMets "
-        "score and for matching radii. Every method is single-threaded; comparators get radii "
-        "from the EDT at their nodes, vesselflow keeps its own.",
+        f"Tolerance sigma = {args.sigmas[0]:g} base cells (the smallest voxel spacing) for the "
+        "headline NetMets scores, radius matching and junctions; NetMets at "
+        f"{', '.join(f'{s:g}' for s in args.sigmas[1:])} beside it. Every method is "
+        "single-threaded; comparators get radii from the EDT at their nodes "
+        "(`vesselflow.compare.edt_radii`), vesselflow keeps its own.",
         "",
-        f"{' and '.join(SLOW_METHODS)} (slow) run only on the first {args.slow_trees} trees per "
-        "level, the first capillary network and the first volume of each real dataset; their "
-        "means are over those cases.",
+        f"Seed sets: tuning = seeds {SEED_SETS['tuning']}, {SEED_SETS['tuning'] + 1}, ...; "
+        f"held-out = seeds {SEED_SETS['heldout']}, {SEED_SETS['heldout'] + 1}, ... (bubble noise "
+        f"seed = {NOISE_SEED} + volume seed). Defaults may be chosen on the tuning set only; the "
+        "held-out set is the headline.",
+        "",
+        f"{' and '.join(SLOW_METHODS)} (slow) run only on the first {args.slow_cases} volumes of "
+        "each family, level and seed set and the first volume of each real dataset; their means "
+        "are over those cases.",
         "",
         f"vesselflow parameters: {vesselflow.Skeletonizer().params}",
         "",
@@ -572,39 +903,119 @@ def header(methods: Sequence[str], args: argparse.Namespace) -> str:
     return "\n".join(out)
 
 
-def report(df: pd.DataFrame, methods: Sequence[str], args: argparse.Namespace) -> str:
-    trees = df[df.dataset == "tree"]
-    parts = ["# Fidelity", "", header(methods, args)]
-    if len(trees):
-        n = trees.case.nunique()
+def source_version() -> str:
+    """The commit the report was made from, ``+ changes`` when the tree was not clean."""
+    import subprocess
+
+    def git(*args: str) -> str:
+        done = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+        return done.stdout.strip() if done.returncode == 0 else ""
+
+    commit = git("rev-parse", "--short", "HEAD")
+    if not commit:
+        return "not a git checkout"
+    return commit + (" + uncommitted changes" if git("status", "--porcelain") else "")
+
+
+COLUMN_NOTES = (
+    "Columns: NetMets proper (Mayerich et al. 2012) geometric and connectivity false "
+    "negative / positive rates; MAPE and bias of the radii of graph nodes within sigma of the "
+    "truth centreline (bias < 0: too thin); components 1:1 = volumes whose graph has as many "
+    "components as the mask has 26-connected components; cycles = the graph's cycle rank, "
+    "against the first Betti number of the noise-free mask (Euler characteristic of the "
+    "closed voxel cubes, plus 26-components and enclosed cavities: "
+    "`vesselflow.metrics.topology`); loop error = sum of |cycles - clean-mask loops| over "
+    "the cases as a percentage of the summed clean-mask loops; junctions found = truth nodes "
+    "of degree >= 3 with a graph node within sigma; edge length outside = share of the "
+    "graph's edge length over background voxels of the input mask; the last count = volumes "
+    "where a graph node lies outside the input mask dilated by one voxel (the invariant of "
+    "`tests/method.rs`). Best of each family in bold."
+)
+
+
+def synthetic_sections(
+    df: pd.DataFrame, methods: Sequence[str], args: argparse.Namespace
+) -> list[str]:
+    syn = df[df.dataset.isin(list(FAMILIES))]
+    if not len(syn):
+        return []
+    held, tune = syn[syn.set == "heldout"], syn[syn.set == "tuning"]
+    headline = held if len(held) else tune
+    name = "held-out" if len(held) else "tuning"
+    parts = [
+        f"## Headline: synthetic families, {name} set, sigma = {args.sigmas[0]:g} voxels",
+        "",
+        COLUMN_NOTES,
+        "",
+        headline_table(headline, methods),
+    ]
+    if len(held) and len(tune):
         parts += [
-            f"## Table I: synthetic trees ({n} trees x 3 noise levels, NetMets proper)",
+            f"## Held-out / tuning, every level of a family together (sigma = {args.sigmas[0]:g})",
             "",
-            "Mean ± sd over the trees at each level; best of our run in bold. The paper's columns "
-            "are its own numbers on its own VascuSynth trees (set beside ours for scale, not "
-            "measured here). " + DIADEM_NOTE,
+            "Each cell is `held-out / tuning`. A method tuned to the tuning set would show it "
+            "here first.",
+            "",
+            versus_table(syn, methods),
+            f"## Tuning set, sigma = {args.sigmas[0]:g} voxels",
+            "",
+            headline_table(tune, methods),
+        ]
+    if len(args.sigmas) > 1:
+        parts += [
+            f"## NetMets at sigma = {' and '.join(f'{s:g}' for s in args.sigmas)} ({name} set)",
+            "",
+            sigma_table(headline, methods, args.sigmas),
+        ]
+    parts += [
+        f"## Radius by band of truth radius ({name} set, sigma = {args.sigmas[0]:g})",
+        "",
+        "Bias and MAPE (percent) of the radii of graph nodes matched to the truth centreline, by "
+        "the truth radius there in voxels, all levels of a family together; n = matched nodes. "
+        "The forest and lattice families are rasterised at voxel centres, the tree and "
+        "capillary families as partial volume thresholded at 0.5 (see benches/README.md for "
+        "how the distance transform relates to the truth radius under each).",
+        "",
+        band_table(headline, methods),
+        f"## Spread of vesselflow's scores across {name} volumes (the guard for changes)",
+        "",
+        "The method is deterministic, so the spread is across volumes: mean ± sd over the "
+        f"cases, then the 95 % percentile bootstrap interval of the mean ({BOOTSTRAP} "
+        "resamples of the cases, seed 0). A change whose mean moves by less than the "
+        "interval's half-width is within the noise of this benchmark.",
+        "",
+        spread_table(headline, "vesselflow"),
+    ]
+    trees = headline[headline.dataset == "tree"]
+    if len(trees):
+        parts += [
+            f"## The paper's Table I layout: CCO trees ({name} set, sigma = "
+            f"{args.sigmas[0]:g}, NetMets proper)",
+            "",
+            "Mean ± sd over the trees at each level; best of our run in bold. The paper's "
+            "columns are its own numbers on its own VascuSynth trees (set beside ours for "
+            "scale, not measured here). " + DIADEM_NOTE,
             "",
             table_by_level(
                 trees, ("gfnr", "gfpr", "cfnr", "cfpr", "diadem", "mape"), methods, paper=True
             ),
-            "## Table I, the authors' NetMets variant "
-            "(VascGraph: nodes of degree ≠ 2, 99 % trimming)",
+            "The authors' NetMets variant (VascGraph: nodes of degree ≠ 2, 99 % trimming):",
             "",
             table_by_level(
                 trees, ("v_gfnr", "v_gfpr", "v_cfnr", "v_cfpr", "mape_norm"), methods, paper=False
             ),
         ]
-    cap = df[df.dataset == "capillary"]
-    if len(cap):
-        parts += [
-            "## Capillary networks (loopy; NetMets proper)",
-            "",
-            table_by_case(cap, ("gfnr", "gfpr", "cfnr", "cfpr", "mape"), methods, "dataset"),
-        ]
+    return parts
+
+
+def report(df: pd.DataFrame, methods: Sequence[str], args: argparse.Namespace) -> str:
+    parts = ["# Fidelity", "", header(methods, args)]
+    parts += synthetic_sections(df, methods, args)
     real = df[df.dataset.isin(["aorta", "vascusynth"])]
     if len(real):
         parts += [
-            "## Table II: real and third-party trees with a centreline truth",
+            f"## Table II: real and third-party trees with a centreline truth (sigma = "
+            f"{args.sigmas[0]:g})",
             "",
             table_by_case(real, ("diadem", "mape"), methods, "case"),
             "NetMets proper on the same volumes:",
@@ -623,7 +1034,7 @@ def report(df: pd.DataFrame, methods: Sequence[str], args: argparse.Namespace) -
         "",
         "Components: graph components against 26-connected mask components (equal on how many "
         "volumes). Cycles: the graph's cycle rank, against the truth's and the mask's loops "
-        "(first Betti number).",
+        "(first Betti number of the mask the method saw).",
         "",
         topology_table(df, methods),
         "## Time (seconds per volume, one core)",
@@ -631,7 +1042,7 @@ def report(df: pd.DataFrame, methods: Sequence[str], args: argparse.Namespace) -
         time_table(df, methods),
     ]
     ours = df[df.method == "vesselflow"]
-    if "iterations" in ours:
+    if "iterations" in ours and len(ours):
         converged, stalled = (ours[k].fillna(False).astype(bool) for k in ("converged", "stalled"))
         parts += [
             f"vesselflow contraction iterations: mean {ours.iterations.mean():.1f}, max "
@@ -678,38 +1089,37 @@ SWEEP: tuple[tuple[str, dict[str, Any]], ...] = (
     ("stall_ratio=0.005", {"stall_ratio": 0.005}),
     ("stall_ratio=0.02", {"stall_ratio": 0.02}),
 )
-SWEEP_COLUMNS = ("gfnr", "gfpr", "cfnr", "cfpr", "diadem", "mape", "iterations", "seconds")
+SWEEP_COLUMNS = ("gfnr", "gfpr", "cfnr", "cfpr", "mape", "junctions", "iterations", "seconds")
 
 
 def composite(part: pd.DataFrame) -> float:
     """One number to rank settings: the mean of the four NetMets rates and the MAPE (each a
-    fraction, lower is better). DIADEM is shown but left out: see ``DIADEM_NOTE``."""
+    fraction, lower is better)."""
     terms = [part[m].mean() for m in GEOMETRY]
     terms += [part.mape.mean() / 100]
     return float(np.mean(terms))
 
 
 def sweep(args: argparse.Namespace) -> str:
-    todo = [r for r in recipes(args.sweep_trees, 0, False)]
+    """One parameter at a time around the defaults, on the tuning set only."""
+    counts = {"forest": args.sweep_volumes, "tree": args.sweep_volumes}
+    todo = synthetic_recipes(counts, ["tuning"], 0, LEVELS)
     lines = [
         "# Sensitivity of vesselflow's parameters",
         "",
         f"Generated by `python benches/fidelity.py {' '.join(sys.argv[1:])}` on "
-        f"{datetime.date.today()}: {args.sweep_trees} synthetic trees x 3 noise levels (the first "
-        "trees of the fidelity run; no real volume), one parameter changed at a time from the "
-        f"defaults, sigma = {args.sigma} cells. "
-        "Score = mean of GFNR, GFPR, CFNR, CFPR and MAPE (fractions; lower is better). "
-        + DIADEM_NOTE,
+        f"{datetime.date.today()}: the first {args.sweep_volumes} forests and CCO trees of the "
+        "tuning set x 3 noise levels (never the held-out set), one parameter changed at a time "
+        f"from the defaults, sigma = {args.sigmas[0]:g} cells. "
+        "Score = mean of GFNR, GFPR, CFNR, CFPR and MAPE (fractions; lower is better).",
         "",
         "| setting | " + " | ".join(METRIC_LABELS.get(c, c) for c in SWEEP_COLUMNS) + " | score |",
         "|---" * (len(SWEEP_COLUMNS) + 2) + "|",
     ]
     for label, params in SWEEP:
-        df, _ = run_all(todo, ["vesselflow"], args.sigma, args.jobs, params, label=f"{label} ")
+        df, _ = run_all(todo, ["vesselflow"], args.sigmas, args.jobs, params, label=f"{label} ")
         cells = [
-            mean_sd(df.get(c, pd.Series()), 2 if c not in ("diadem", "mape", "iterations") else 1)[
-                1
-            ]
+            mean_sd(df.get(c, pd.Series()), 2 if c not in ("mape", "iterations") else 1)[1]
             for c in SWEEP_COLUMNS
         ]
         lines.append(f"| {label} | " + " | ".join(cells) + f" | {composite(df):.4f} |")
@@ -720,55 +1130,111 @@ def sweep(args: argparse.Namespace) -> str:
 def main(argv: Iterable[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
-        "--trees", type=int, default=10, help="synthetic trees per noise level (default 10)"
+        "--set",
+        choices=("tuning", "heldout", "both"),
+        default="both",
+        help="seed set(s) of the synthetic families (default both; the headline is held-out)",
     )
-    ap.add_argument("--capillaries", type=int, default=3, help="capillary networks (default 3)")
+    for family, (_, n) in FAMILIES.items():
+        ap.add_argument(
+            f"--{family}s" if family != "capillary" else "--capillaries",
+            dest=family,
+            type=int,
+            default=n,
+            help=f"{family} volumes per seed set (default {n})",
+        )
     ap.add_argument("--no-real", action="store_true", help="skip ../shared/data")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="a ~1 minute guard: two held-out forests and one CCO tree at D1 and D2 and one "
+        "lattice, vesselflow and thinning+skan, no real volume; prints the report, writes "
+        "files only with --out",
+    )
     ap.add_argument(
         "--methods", nargs="+", default=None, help="subset of vesselflow.compare.METHODS"
     )
     ap.add_argument(
-        "--sigma", type=float, default=3.0, help="NetMets tolerance in base cells (default 3)"
+        "--sigmas",
+        type=float,
+        nargs="+",
+        default=list(SIGMAS),
+        help="NetMets tolerances in base cells, headline first (default 2 3)",
     )
     ap.add_argument("--jobs", type=int, default=2, help="cases run at once (default 2)")
     ap.add_argument(
-        "--slow-trees",
+        "--slow-cases",
         type=int,
-        default=2,
-        help=f"trees per level that {', '.join(SLOW_METHODS)} run on (default 2)",
+        default=1,
+        help=f"volumes per family, level and set that {', '.join(SLOW_METHODS)} run on (default 1)",
+    )
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite fidelity.md from the fidelity_rows.csv and PNGs already in --out (no run)",
     )
     ap.add_argument("--sweep", action="store_true", help="also run the sensitivity sweep")
     ap.add_argument("--sweep-only", action="store_true", help="run only the sensitivity sweep")
     ap.add_argument(
-        "--sweep-trees", type=int, default=4, help="trees per level in the sweep (default 4)"
+        "--sweep-volumes",
+        type=int,
+        default=3,
+        help="tuning forests and trees per level in the sweep (default 3)",
     )
-    ap.add_argument("--out", type=Path, default=HERE / "results", help="output folder")
+    ap.add_argument(
+        "--out", type=Path, default=None, help="output folder (default benches/results)"
+    )
     args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-
-    if not args.sweep_only:
+    if args.quick:
+        counts = {"forest": 2, "lattice": 1, "tree": 1}
+        todo = synthetic_recipes(counts, ["heldout"], 0, ("D1", "D2"))
+        wanted = args.methods or ["vesselflow", "voxel"]
+    else:
+        counts = {family: getattr(args, family) for family in FAMILIES}
+        sets = ["tuning", "heldout"] if args.set == "both" else [args.set]
+        todo = synthetic_recipes(counts, sets, args.slow_cases, LEVELS)
+        todo += [] if args.no_real else real_recipes()
         wanted = args.methods or list(compare.METHODS)
+    out = args.out if args.out is not None or args.quick else HERE / "results"
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+
+    if args.report_only:
+        folder = out or HERE / "results"
+        df = pd.read_csv(folder / "fidelity_rows.csv")
+        df["level"] = df.level.fillna("")
+        methods = [m for m in compare.METHODS if m in set(df.method)]
+        text = report(df, methods, args) + "## Figures\n\n"
+        text += "".join(
+            f"![{png.stem[9:]}]({png.name})\n" for png in sorted(folder.glob("fidelity_*.png"))
+        )
+        write_atomic(folder / "fidelity.md", lambda f: f.write(text.encode()))
+        print(text)
+        return
+    if not args.sweep_only:
         methods = [m for m in wanted if compare.available().get(m) is None]
         for m in set(wanted) - set(methods):
             print(f"skipping {m}: {compare.available()[m]}", file=sys.stderr)
         t0 = time.time()
-        todo = recipes(args.trees, args.capillaries, not args.no_real, args.slow_trees)
-        df, figures = run_all(todo, methods, args.sigma, args.jobs)
-        write_atomic(
-            args.out / "fidelity_rows.csv", lambda f: f.write(df.to_csv(index=False).encode())
-        )
+        df, figures = run_all(todo, methods, args.sigmas, args.jobs)
         text = report(df, methods, args)
-        figure_lines = ["## Figures", ""]
-        for dataset, material in figures.items():
-            png = args.out / f"fidelity_{dataset}.png"
-            figure(png, dataset, material)
-            figure_lines.append(f"![{dataset}]({png.name})")
-        text += "\n".join(figure_lines) + f"\n\nTotal wall time {time.time() - t0:.0f} s.\n"
-        write_atomic(args.out / "fidelity.md", lambda f: f.write(text.encode()))
+        if out is not None:
+            write_atomic(
+                out / "fidelity_rows.csv", lambda f: f.write(df.to_csv(index=False).encode())
+            )
+            figure_lines = ["## Figures", ""]
+            for dataset, material in figures.items():
+                png = out / f"fidelity_{dataset}.png"
+                figure(png, dataset, material)
+                figure_lines.append(f"![{dataset}]({png.name})")
+            text += "\n".join(figure_lines) + "\n"
+        text += f"\nTotal wall time {time.time() - t0:.0f} s.\n"
+        if out is not None:
+            write_atomic(out / "fidelity.md", lambda f: f.write(text.encode()))
         print(text)
     if args.sweep or args.sweep_only:
         text = sweep(args)
-        write_atomic(args.out / "sensitivity.md", lambda f: f.write(text.encode()))
+        write_atomic((out or HERE / "results") / "sensitivity.md", lambda f: f.write(text.encode()))
         print(text)
 
 

@@ -11,6 +11,8 @@ Geometric Graphs for Anatomical Modeling of Cerebrovascular Networks", Tables I 
   multiple reconstructions of the same neuron", Neuroinformatics 9: 233-245, 2011.
 - :func:`radius_error`: mean absolute percentage error of radii at matched points.
 - :func:`topology`: components and loops of the graph against those of the mask.
+- :func:`radius_bands`, :func:`junction_recall`, :func:`mask_fidelity`: radius bias per band
+  of radius, true junctions found, and where the graph leaves the mask.
 
 All positions, ``sigma``, ``max_dist`` and thresholds are in the graphs' physical units.
 """
@@ -29,10 +31,19 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from vesselflow.analysis import _trace
+from vesselflow.analysis import trace_branches
 from vesselflow.graph import VesselGraph
 
-__all__ = ["diadem", "netmets", "radius_error", "topology"]
+__all__ = [
+    "RADIUS_BANDS",
+    "diadem",
+    "junction_recall",
+    "mask_fidelity",
+    "netmets",
+    "radius_bands",
+    "radius_error",
+    "topology",
+]
 
 _SATURATION = 9.0
 """Beyond ``_SATURATION * sigma`` the NetMets score ``1 - exp(-d^2 / 2 sigma^2)`` is 1 to double
@@ -208,7 +219,7 @@ def _geometry_rate(source: VesselGraph, target: VesselGraph, sigma: float, step:
 
 def _core_branches(graph: VesselGraph) -> list[tuple[int, int]]:
     """End nodes of every branch (the core graph's edges; loops appear as ``(u, u)``)."""
-    return [(br.nodes[0], br.nodes[-1]) for br in _trace(graph.n_nodes, graph.edges)]
+    return [(br.nodes[0], br.nodes[-1]) for br in trace_branches(graph)]
 
 
 def _match_core_nodes(
@@ -413,6 +424,14 @@ def netmets(
     the graph and re-counts the branches of what is left (which can split or merge branches);
     here the kept branches are counted directly. Unlike NetMets proper, this variant counts a
     graph branch that bridges a missed junction as a false positive.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph, metrics
+    >>> truth = VesselGraph([[0, 0, 0], [0, 0, 10], [0, 0, 20]], [2, 2, 2], [[0, 1], [1, 2]])
+    >>> graph = VesselGraph([[0, 0.5, 0], [0, 0.5, 20]], [1.8, 2.2], [[0, 1]])  # 0.5 off
+    >>> {k: round(v, 3) for k, v in metrics.netmets(truth, graph, sigma=3.0).items()}
+    {'gfnr': 0.014, 'gfpr': 0.014, 'cfnr': 0.0, 'cfpr': 0.0}
     """
     truth = _check_graph(truth, "truth")
     graph = _check_graph(graph, "graph")
@@ -573,6 +592,19 @@ def diadem(
 
     Not implemented from the jar: the "distant match" report, micron conversion and the
     data-set presets (``-D``).
+
+    Returns
+    -------
+    float
+        The score in [0, 1]; 1 is perfect.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph, metrics
+    >>> truth = VesselGraph([[0, 0, 0], [0, 0, 10], [0, 0, 20]], [2, 2, 2], [[0, 1], [1, 2]])
+    >>> graph = VesselGraph([[0, 0.5, 0], [0, 0.5, 20]], [1.8, 2.2], [[0, 1]])  # 0.5 off
+    >>> metrics.diadem(truth, graph)
+    1.0
     """
     truth = _check_graph(truth_tree, "truth_tree")
     graph = _check_graph(graph_tree, "graph_tree")
@@ -659,6 +691,20 @@ def diadem(
 # radius error
 
 
+def _matched_radii(
+    truth: VesselGraph, graph: VesselGraph, max_dist: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Truth radius (interpolated on the nearest truth segment), graph radius and matching
+    distance of every graph node within ``max_dist`` of the truth centreline."""
+    a, b, ends = _edge_segments(truth, with_isolated=True)
+    if len(a) == 0:
+        raise ValueError("truth has no nodes")
+    d, seg, t = _SegmentIndex(a, b, max_dist / 2).nearest(graph.positions, cutoff=max_dist)
+    ok = d <= max_dist
+    r_t = (1 - t[ok]) * truth.radii[ends[seg[ok], 0]] + t[ok] * truth.radii[ends[seg[ok], 1]]
+    return r_t, graph.radii[ok], d[ok]
+
+
 def radius_error(
     truth: VesselGraph, graph: VesselGraph, max_dist: float, *, normalised: bool = False
 ) -> dict[str, float]:
@@ -684,24 +730,27 @@ def radius_error(
         ``mape`` (percent; NaN when nothing matched), ``n_matched``, ``n_unmatched`` (graph
         nodes farther than ``max_dist``), ``mean_abs_error`` (mean ``|r_g - r_t|``, physical
         units, of the raw radii) and ``mean_dist`` (mean matching distance).
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph, metrics
+    >>> truth = VesselGraph([[0, 0, 0], [0, 0, 10], [0, 0, 20]], [2, 2, 2], [[0, 1], [1, 2]])
+    >>> graph = VesselGraph([[0, 0.5, 0], [0, 0.5, 20]], [1.8, 2.2], [[0, 1]])  # 0.5 off
+    >>> error = metrics.radius_error(truth, graph, max_dist=3.0)
+    >>> round(error["mape"], 6), error["n_matched"]  # radii 10 % off at both nodes
+    (10.0, 2)
     """
     truth = _check_graph(truth, "truth")
     graph = _check_graph(graph, "graph")
     max_dist = _check_positive(max_dist, "max_dist")
-    a, b, ends = _edge_segments(truth, with_isolated=True)
-    if len(a) == 0:
-        raise ValueError("truth has no nodes")
-    d, seg, t = _SegmentIndex(a, b, max_dist / 2).nearest(graph.positions, cutoff=max_dist)
-    ok = d <= max_dist
-    r_t = (1 - t[ok]) * truth.radii[ends[seg[ok], 0]] + t[ok] * truth.radii[ends[seg[ok], 1]]
-    r_g = graph.radii[ok]
-    n = int(ok.sum())
+    r_t, r_g, dist = _matched_radii(truth, graph, max_dist)
+    n = len(r_t)
     out: dict[str, float] = {
         "mape": math.nan,
         "n_matched": n,
         "n_unmatched": int(graph.n_nodes - n),
         "mean_abs_error": float(np.mean(np.abs(r_g - r_t))) if n else math.nan,
-        "mean_dist": float(np.mean(d[ok])) if n else math.nan,
+        "mean_dist": float(np.mean(dist)) if n else math.nan,
     }
     if n == 0:
         return out
@@ -765,6 +814,22 @@ def topology(
     ``spacing`` (default ``graph.spacing``) is used only to check that the graph's nodes lie
     within the mask's physical extent (voxel (i, j, k) centred at ``(i, j, k) * spacing``, one
     voxel of slack); counts do not depend on it.
+
+    Returns
+    -------
+    dict
+        The counts above; ``components_equal`` and ``loops_equal`` are bool, the rest int.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from vesselflow import VesselGraph, metrics
+    >>> mask = np.zeros((5, 5, 30), bool)
+    >>> mask[1:4, 1:4, 2:28] = True  # a bar: one component, no loop
+    >>> graph = VesselGraph([[2, 2, 3], [2, 2, 26]], [1, 1], [[0, 1]])
+    >>> t = metrics.topology(mask, graph)
+    >>> t["mask_components"], t["graph_components"], t["loops_equal"]
+    (1, 1, True)
     """
     graph = _check_graph(graph, "graph")
     arr = np.asarray(mask)
@@ -809,4 +874,158 @@ def topology(
         "loops_equal": mask_loops == graph_cycles,
         "mask_euler": chi,
         "mask_cavities": cavities,
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# fidelity to the mask, junctions and radius bands
+
+#: Radius bands of :func:`radius_bands`, in units of the finest voxel spacing: [low, high).
+RADIUS_BANDS: tuple[tuple[float, float], ...] = ((1.0, 2.0), (2.0, 3.0), (3.0, 5.0), (5.0, 10.0))
+
+
+def radius_bands(
+    truth: VesselGraph,
+    graph: VesselGraph,
+    max_dist: float,
+    bands: tuple[tuple[float, float], ...] = RADIUS_BANDS,
+) -> dict[str, dict[str, float]]:
+    """Radius bias and MAPE of the graph per band of truth radius.
+
+    Graph nodes are matched to the truth centreline as in :func:`radius_error`; each match
+    falls in the band ``[low, high)`` holding its truth radius divided by the finest spacing
+    of ``truth`` (so bands are in voxels).
+
+    Parameters
+    ----------
+    truth, graph : VesselGraph
+    max_dist : float
+        Matching tolerance, physical.
+    bands : tuple of (low, high)
+        Bands in voxels; by default :data:`RADIUS_BANDS` (1-2, 2-3, 3-5, 5-10).
+
+    Returns
+    -------
+    dict
+        Keyed ``"low-high"`` (e.g. ``"1-2"``), each a dict with ``n`` (matched nodes),
+        ``bias`` (percent, ``100 * mean((r_g - r_t) / r_t)``: negative when radii are too
+        small) and ``mape`` (percent); NaN where the band holds no match.
+
+    Examples
+    --------
+    >>> from vesselflow import synth
+    >>> _, truth = synth.cylinder((40, 24, 24), radius=2.5)
+    >>> radius_bands(truth, truth, 2.0)["2-3"]["mape"]
+    0.0
+    """
+    truth = _check_graph(truth, "truth")
+    graph = _check_graph(graph, "graph")
+    max_dist = _check_positive(max_dist, "max_dist")
+    r_t, r_g, _ = _matched_radii(truth, graph, max_dist)
+    if np.any(r_t <= 0):
+        raise ValueError("truth radii at matched points must be positive")
+    rel = (r_g - r_t) / r_t
+    vox = r_t / float(np.min(truth.spacing))
+    out: dict[str, dict[str, float]] = {}
+    for low, high in bands:
+        sel = (vox >= low) & (vox < high)
+        n = int(sel.sum())
+        out[f"{low:g}-{high:g}"] = {
+            "n": n,
+            "bias": float(100 * np.mean(rel[sel])) if n else math.nan,
+            "mape": float(100 * np.mean(np.abs(rel[sel]))) if n else math.nan,
+        }
+    return out
+
+
+def junction_recall(truth: VesselGraph, graph: VesselGraph, sigma: float) -> dict[str, float]:
+    """How many true junctions (truth nodes of degree 3 or more) have a graph node within
+    ``sigma``.
+
+    Returns
+    -------
+    dict
+        ``n_junctions``, ``found`` and ``recall`` (``found / n_junctions``; NaN without
+        junctions).
+
+    Examples
+    --------
+    >>> from vesselflow import synth
+    >>> _, truth = synth.y_bifurcation()
+    >>> junction_recall(truth, truth, 1.0)["recall"]
+    1.0
+    """
+    truth = _check_graph(truth, "truth")
+    graph = _check_graph(graph, "graph")
+    sigma = _check_positive(sigma, "sigma")
+    degree = np.bincount(truth.edges.ravel(), minlength=truth.n_nodes)
+    junctions = truth.positions[degree >= 3]
+    found = 0
+    if len(junctions) and graph.n_nodes:
+        d, _ = cKDTree(graph.positions).query(junctions, distance_upper_bound=sigma)
+        found = int(np.count_nonzero(d <= sigma))
+    n = len(junctions)
+    return {"n_junctions": n, "found": found, "recall": found / n if n else math.nan}
+
+
+def mask_fidelity(mask: ArrayLike, graph: VesselGraph) -> dict[str, float]:
+    """Where the graph leaves the mask it was built from.
+
+    Parameters
+    ----------
+    mask : array_like
+        3-D, non-zero = vessel; voxel ``(i, j, k)`` is centred at ``(i, j, k) * graph.spacing``.
+    graph : VesselGraph
+
+    Returns
+    -------
+    dict
+        - ``nodes_outside_dilated``: graph nodes whose voxel (position / spacing, rounded) is
+          outside the mask dilated by one voxel (a 3x3x3 cube; out of the array counts as
+          outside): the invariant of ``tests/method.rs``.
+        - ``edge_outside``: fraction of the graph's edge length whose points fall in
+          background voxels (each edge sampled every quarter of the finest spacing, each
+          sample in the voxel it rounds to); ``edge_outside_length`` the same as a length
+          (physical).
+
+    Examples
+    --------
+    >>> from vesselflow import synth
+    >>> mask, truth = synth.torus()
+    >>> mask_fidelity(mask, truth)["nodes_outside_dilated"]
+    0
+    """
+    graph = _check_graph(graph, "graph")
+    arr = np.asarray(mask)
+    if arr.ndim != 3:
+        raise ValueError(f"mask must be 3-D, got {arr.ndim} dimensions")
+    arr = arr != 0
+    shape = np.asarray(arr.shape)
+
+    def inside(points: NDArray[np.float64], volume: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        vox = np.rint(points / graph.spacing).astype(np.int64)
+        ok = np.all((vox >= 0) & (vox < shape), axis=1)
+        hit = np.zeros(len(points), dtype=bool)
+        hit[ok] = volume[tuple(vox[ok].T)]
+        return hit
+
+    dilated = ndimage.binary_dilation(arr, structure=np.ones((3, 3, 3), dtype=bool))
+    nodes_out = int(graph.n_nodes - np.count_nonzero(inside(graph.positions, dilated)))
+    a = graph.positions[graph.edges[:, 0]]
+    b = graph.positions[graph.edges[:, 1]]
+    length = np.linalg.norm(b - a, axis=1)
+    total = float(length.sum())
+    if total == 0.0:
+        return {"nodes_outside_dilated": nodes_out, "edge_outside": 0.0, "edge_outside_length": 0.0}
+    pieces = np.maximum(1, np.ceil(length / (0.25 * float(graph.spacing.min())))).astype(np.int64)
+    edge = np.repeat(np.arange(len(a)), pieces)
+    first = np.repeat(np.cumsum(pieces) - pieces, pieces)
+    t = ((np.arange(len(edge)) - first + 0.5) / pieces[edge])[:, None]
+    points = a[edge] + t * (b - a)[edge]
+    outside = ~inside(points, arr)
+    out_length = float(np.sum((length / pieces)[edge][outside]))
+    return {
+        "nodes_outside_dilated": nodes_out,
+        "edge_outside": out_length / total,
+        "edge_outside_length": out_length,
     }

@@ -1,0 +1,130 @@
+"""The benchmark's extra metrics: vesselflow.metrics.radius_bands, junction_recall,
+mask_fidelity, and the loop target (first Betti number of a mask) they are read with."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from vesselflow import VesselGraph, metrics, synth
+
+
+def torus_mask(shape, centre, normal, major, minor) -> np.ndarray:
+    """A solid torus: points within ``minor`` of the circle of radius ``major`` about
+    ``centre`` in the plane normal to the unit ``normal``."""
+    x = np.indices(shape).reshape(3, -1).T - np.asarray(centre, float)
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    axial = x @ n
+    radial = np.linalg.norm(x - axial[:, None] * n, axis=1)
+    return ((radial - major) ** 2 + axial**2 <= minor**2).reshape(shape)
+
+
+def skimage_loops(mask: np.ndarray) -> int | None:
+    """b1 = b0 + b2 - chi with scikit-image's Euler number (26-connected foreground), or
+    None without scikit-image (the bench extra)."""
+    try:
+        from skimage import measure
+    except ImportError:
+        return None
+    chi = int(measure.euler_number(mask, connectivity=3))
+    b0 = int(ndimage.label(mask, structure=np.ones((3, 3, 3)))[1])
+    b2 = int(ndimage.label(~np.pad(mask, 1))[1]) - 1
+    return b0 + b2 - chi
+
+
+EMPTY = VesselGraph(np.zeros((1, 3)), np.ones(1), np.zeros((0, 2), np.int64))
+
+
+def test_betti_one_of_a_torus_is_one_and_of_two_linked_tori_two():
+    shape = (48, 64, 48)
+    a = torus_mask(shape, (24, 24, 24), (1, 0, 0), 12, 3)
+    # b lies in the plane of axes 0 and 1 and passes through a's hole: the two are linked.
+    b = torus_mask(shape, (24, 36, 24), (0, 0, 1), 12, 3)
+    assert not (a & b).any()
+    assert metrics.topology(a, EMPTY)["mask_loops"] == 1
+    both = metrics.topology(a | b, EMPTY)
+    assert both["mask_loops"] == 2
+    assert both["mask_components"] == 2
+    assert skimage_loops(a | b) in (2, None)
+    # A solid ball has none; a hollow one has a cavity and still no loop.
+    ball = torus_mask(shape, (24, 32, 24), (1, 0, 0), 0, 8)
+    assert metrics.topology(ball, EMPTY)["mask_loops"] == 0
+    shell = ball & ~torus_mask(shape, (24, 32, 24), (1, 0, 0), 0, 5)
+    assert metrics.topology(shell, EMPTY)["mask_loops"] == 0
+    assert metrics.topology(shell, EMPTY)["mask_cavities"] == 1
+
+
+def test_radius_bands_of_a_perfect_graph_are_zero_and_scale_errors_show():
+    _, thin = synth.cylinder((40, 24, 24), radius=1.5)
+    _, thick = synth.cylinder((40, 24, 24), radius=6.0, start=(8, 12, 12), end=(30, 12, 12))
+    for truth, band in ((thin, "1-2"), (thick, "5-10")):
+        perfect = metrics.radius_bands(truth, truth, 2.0)
+        assert perfect[band]["n"] == truth.n_nodes
+        assert perfect[band]["mape"] == 0.0
+        assert perfect[band]["bias"] == 0.0
+        others = [b for b in metrics.RADIUS_BANDS if f"{b[0]:g}-{b[1]:g}" != band]
+        for lo, hi in others:
+            assert perfect[f"{lo:g}-{hi:g}"]["n"] == 0
+            assert math.isnan(perfect[f"{lo:g}-{hi:g}"]["mape"])
+        thinner = VesselGraph(truth.positions, 0.9 * truth.radii, truth.edges, truth.spacing)
+        scored = metrics.radius_bands(truth, thinner, 2.0)[band]
+        assert scored["bias"] == pytest.approx(-10.0)
+        assert scored["mape"] == pytest.approx(10.0)
+
+
+def test_radius_bands_are_in_voxels_of_the_finest_spacing():
+    _, truth = synth.cylinder((20, 24, 24), radius=2.5, spacing=(2.0, 0.5, 0.5))
+    # 2.5 physical units at a finest spacing of 0.5 is 5 voxels.
+    assert metrics.radius_bands(truth, truth, 1.0)["5-10"]["n"] == truth.n_nodes
+
+
+def test_junction_recall_counts_truth_junctions_near_graph_nodes():
+    _, truth = synth.y_bifurcation()
+    assert metrics.junction_recall(truth, truth, 1.0) == {
+        "n_junctions": 1,
+        "found": 1,
+        "recall": 1.0,
+    }
+    junction = int(np.flatnonzero(truth.degrees() >= 3)[0])
+    keep = np.linalg.norm(truth.positions - truth.positions[junction], axis=1) > 3.0
+    index = np.cumsum(keep) - 1
+    live = keep[truth.edges].all(axis=1)
+    holed = VesselGraph(truth.positions[keep], truth.radii[keep], index[truth.edges[live]])
+    assert metrics.junction_recall(truth, holed, 2.0)["recall"] == 0.0
+    assert metrics.junction_recall(truth, holed, 4.0)["recall"] == 1.0
+    _, tube = synth.cylinder()
+    assert math.isnan(metrics.junction_recall(tube, truth, 2.0)["recall"])
+
+
+def test_mask_fidelity_counts_a_node_moved_out_of_the_mask():
+    mask, truth = synth.cylinder((48, 32, 32), radius=4.0)
+    clean = metrics.mask_fidelity(mask, truth)
+    assert clean == {"nodes_outside_dilated": 0, "edge_outside": 0.0, "edge_outside_length": 0.0}
+    moved = truth.positions.copy()
+    middle = truth.n_nodes // 2
+    moved[middle, 1] += 10.0  # 6 voxels beyond the wall
+    graph = VesselGraph(moved, truth.radii, truth.edges)
+    out = metrics.mask_fidelity(mask, graph)
+    assert out["nodes_outside_dilated"] == 1
+    # The two edges to the moved node run about 6 voxels outside each.
+    lengths = np.linalg.norm(moved[truth.edges[:, 0]] - moved[truth.edges[:, 1]], axis=1)
+    assert out["edge_outside_length"] == pytest.approx(2 * 10.0 * 6 / 10, abs=1.0)
+    assert out["edge_outside"] == pytest.approx(out["edge_outside_length"] / lengths.sum())
+    # A node just past the wall, inside the mask dilated by one voxel, is not counted.
+    near = truth.positions.copy()
+    near[middle, 1] += 4.6
+    assert (
+        metrics.mask_fidelity(mask, VesselGraph(near, truth.radii, truth.edges))[
+            "nodes_outside_dilated"
+        ]
+        == 0
+    )
+
+
+def test_mask_fidelity_rejects_a_mask_that_is_not_3d():
+    _, truth = synth.cylinder()
+    with pytest.raises(ValueError, match="3-D"):
+        metrics.mask_fidelity(np.ones((4, 4)), truth)
