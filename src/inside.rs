@@ -1,4 +1,4 @@
-//! Nodes kept inside the mask (output stage; not in METHOD.md).
+//! Nodes kept inside the mask (output stage; not in the paper).
 //!
 //! The flow and the mean-position decimation can leave a node off the mask: a
 //! cluster of a thin curved vessel averages to a point on the chord of the curve,
@@ -92,11 +92,16 @@ pub fn keep_inside<T: Voxel>(positions: &[[f64; 3]], mask: ArrayView3<'_, T>, sp
         .collect()
 }
 
+/// Base cells taken off the EDT radii the loop rule compares holes with (the
+/// half-voxel correction of `docs/method.md` §1, with which [`loop_of_the_mask`] was set; the output radii
+/// are measured apart, by [`crate::radius`]).
+pub const LOOP_RADIUS_SHIFT: f64 = 0.5;
+
 /// True if the cycle is a loop of the mask and not a knot of the flow: its centroid
 /// lies on a background voxel (or outside the array), so the polygon runs around a
 /// hole of the mask, and the hole is at least as wide as the vessels that form it.
-/// With `r` the mean vessel radius of the cycle's nodes (their EDT less `shift`, as
-/// output), a loop around a hole of radius `h` has a centreline of radius `h + r`, so
+/// With `r` the mean vessel radius of the cycle's nodes (their EDT less `shift`), a
+/// loop around a hole of radius `h` has a centreline of radius `h + r`, so
 /// `h ≥ r` means an area of at least `π (2 r)²`. Smaller holes are what bubbles of
 /// segmentation noise make beside a vessel; refinement collapses those as before.
 pub fn loop_of_the_mask<T: Voxel>(

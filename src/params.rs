@@ -1,4 +1,4 @@
-//! Every parameter of the method (METHOD.md), its default and its validation.
+//! Every parameter of the method (`docs/parameters.md`), its default and its validation.
 //!
 //! One table serves all front ends: [`Params::NAMES`] lists the names,
 //! [`Params::set`] assigns a loosely typed [`Value`] with range checks that name
@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 /// the stop level; a thick vessel bed starts near 1600 times it.
 pub const STALL_AREA: f64 = 10.0;
 
-/// Edges of the initial grid graph (METHOD.md §1).
+/// Edges of the initial grid graph (docs/method.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Connectivity {
     Six = 6,
@@ -22,7 +22,7 @@ pub enum Connectivity {
     TwentySix = 26,
 }
 
-/// Medial affinity weighting (METHOD.md §2.1).
+/// Medial affinity weighting (docs/method.md §2.1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MedialWeight {
     /// `r_j / sum_k r_k`: what the authors' code ran (default).
@@ -31,7 +31,7 @@ pub enum MedialWeight {
     Difference,
 }
 
-/// Reference area of the convergence test (METHOD.md §2.6).
+/// Reference area of the convergence test (docs/method.md §2.6).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AreaReference {
     /// Foreground volume in base cells, in `c^2` units: the number of foreground
@@ -82,7 +82,7 @@ impl Value {
     }
 }
 
-/// All parameters of the method, with METHOD.md's defaults.
+/// All parameters of the method, with their defaults (`docs/parameters.md`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Params {
     /// Grid-graph connectivity: 6 (default), 18 or 26.
@@ -90,10 +90,11 @@ pub struct Params {
     /// Join nodes of degree <= 2 to all foreground voxels within sqrt(2) voxels.
     pub reconnect_thin: bool,
     /// Subtracted from every output radius, in units of the base cell `c = min(spacing)`.
-    /// The EDT measures to the nearest background voxel *centre*, half a voxel beyond
-    /// the boundary a voxelised surface represents; 0.5 removes that offset. (0.75 scores
-    /// better on the thin vessels of the synthetic trees, `benches/results/sensitivity.md`,
-    /// but makes thick tubes' radii a voxel low: r = 4 gives 3.37, r = 5 gives 3.84.)
+    /// Radii are measured by cross-section area ([`crate::radius`]), unbiased on drawn
+    /// tubes (`tests/radius.rs`), so the default is 0; a positive value removes a known
+    /// margin by which a mask is wider than its vessels (the bubble-noise recipe of the
+    /// benchmark dilates its masks by one voxel first, which is why 0.75 scored best on
+    /// its noisy trees under the EDT radius of `docs/method.md` §1).
     pub radius_correction: f64,
     /// Medial affinity weighting.
     pub medial_weight: MedialWeight,
@@ -102,13 +103,19 @@ pub struct Params {
     pub skeletal_angle: f64,
     /// Count degree-1 nodes (vessel ends) as skeleton-like too, so they are anchored
     /// `eps_gamma` times harder and kept through decimation, and at output move each
-    /// to one radius inside the mask's end along its vessel (`ends`). METHOD.md's test
+    /// to one radius inside the mask's end along its vessel (`ends`). The paper's test
     /// needs degree > 1; without this the flow pulls every free end inward.
     pub anchor_ends: bool,
+    /// Move every node, after refinement, onto the ridge of the distance transform:
+    /// within its cross-section to the nearest local maximum, and every junction to
+    /// where its branches' centrelines meet, each at most 0.6 radii away
+    /// ([`crate::medial`]). Off: nodes stay where the flow left them, at the local
+    /// centre of mass of the mask.
+    pub medial: bool,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,
     /// Weight of the l2-norm Laplacian. Only the ratios alpha : beta : gamma matter; the
-    /// default 0.25 (METHOD.md: 0.5) scored best on the synthetic trees
+    /// default 0.25 (first 0.5, `docs/method.md`) scored best on the synthetic trees
     /// (`benches/results/sensitivity.md`).
     pub alpha: f64,
     /// Weight of the medial Laplacian.
@@ -117,7 +124,7 @@ pub struct Params {
     pub gamma: f64,
     /// Relative residual at which conjugate gradients stop, measured in the
     /// preconditioner's norm (`sqrt(r · B r)`, B the Gauss–Seidel preconditioner, against
-    /// its value at the start). 1e-4, not METHOD.md's 1e-6:
+    /// its value at the start). 1e-4, not the first default 1e-6:
     /// the fidelity sweep scores them alike (`benches/results/sensitivity.md`) and 1e-4
     /// needs about 40 % fewer CG iterations.
     pub cg_tol: f64,
@@ -130,7 +137,7 @@ pub struct Params {
     /// Also stop when an iteration merges fewer than this fraction of the nodes while
     /// the short-cycle area is within [`STALL_AREA`] times the stop level: the graph has
     /// stopped simplifying, and further flow only wears vessel ends down (refinement
-    /// then collapses the few small cycles left). 0 turns it off (METHOD.md).
+    /// then collapses the few small cycles left). 0 turns it off (as in the paper).
     pub stall_ratio: f64,
     /// Reference area of the convergence test.
     pub area_reference: AreaReference,
@@ -154,10 +161,11 @@ impl Default for Params {
         Params {
             connectivity: Connectivity::Six,
             reconnect_thin: true,
-            radius_correction: 0.5,
+            radius_correction: 0.0,
             medial_weight: MedialWeight::Radius,
             skeletal_angle: 10.0,
             anchor_ends: true,
+            medial: true,
             eps_gamma: 10.0,
             alpha: 0.25,
             beta: 0.5,
@@ -223,13 +231,14 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 21] = [
+    pub const NAMES: [&'static str; 22] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
         "medial_weight",
         "skeletal_angle",
         "anchor_ends",
+        "medial",
         "eps_gamma",
         "alpha",
         "beta",
@@ -260,6 +269,7 @@ impl Params {
             }
             "reconnect_thin" => self.reconnect_thin = as_bool(name, v)?,
             "anchor_ends" => self.anchor_ends = as_bool(name, v)?,
+            "medial" => self.medial = as_bool(name, v)?,
             "radius_correction" => self.radius_correction = in_range(name, as_f64(name, v)?, 0.0, 1.0, false)?,
             "medial_weight" => {
                 self.medial_weight = match as_str(name, v)? {
@@ -355,6 +365,7 @@ impl Params {
             ("medial_weight", Value::Str(mw.into())),
             ("skeletal_angle", Value::Float(self.skeletal_angle)),
             ("anchor_ends", Value::Bool(self.anchor_ends)),
+            ("medial", Value::Bool(self.medial)),
             ("eps_gamma", Value::Float(self.eps_gamma)),
             ("alpha", Value::Float(self.alpha)),
             ("beta", Value::Float(self.beta)),

@@ -276,12 +276,12 @@ fn edge_cases() {
     assert!(s.is_empty() && s.edges.is_empty());
     // Zero-size array: empty graph.
     assert!(run(&Array3::<u8>::zeros((0, 4, 4))).is_empty());
-    // One voxel: one node at its centre, radius EDT 1 minus the half-voxel correction.
+    // One voxel: one node at its centre, radius that of the ball of one voxel's volume.
     let mut one = Array3::<u8>::zeros((5, 5, 5));
     one[[2, 3, 1]] = 1;
     let s = run(&one);
     assert_eq!(s.positions, vec![[2.0, 3.0, 1.0]]);
-    assert_eq!(s.radii, vec![0.5]);
+    assert!((s.radii[0] - (0.75 / std::f64::consts::PI).cbrt()).abs() < 1e-12, "{:?}", s.radii);
     assert!(s.edges.is_empty());
     // A one-voxel-thin bent line: a path through every voxel.
     let mut line = Array3::<u8>::zeros((3, 12, 12));
@@ -301,7 +301,8 @@ fn edge_cases() {
 
 /// A mask that is vessel everywhere is a solid block (background lies outside the
 /// array): it gets a connected graph inside the block, with radii no larger than the
-/// block's largest inscribed ball (half its smallest physical side).
+/// block's largest inscribed ball (half its smallest physical side) plus half a voxel
+/// diagonal (the cap of the section radius over the EDT, `vesselflow::radius`).
 #[test]
 fn an_all_foreground_block_is_a_solid_block_with_its_graph() {
     for (shape, spacing) in [([24, 24, 24], [1.0; 3]), ([40, 12, 12], [1.0; 3]), ([40, 12, 12], [0.5, 1.0, 1.0])] {
@@ -311,7 +312,8 @@ fn an_all_foreground_block_is_a_solid_block_with_its_graph() {
         assert_eq!(s.info.mask_components, 1);
         assert_eq!(components(&s), 1, "{shape:?}: one solid block, one graph component");
         assert!(s.info.converged || s.info.stalled, "{shape:?}: {:?}", s.info);
-        let inscribed = (0..3).map(|d| shape[d] as f64 * spacing[d] / 2.0).fold(f64::INFINITY, f64::min);
+        let inscribed = (0..3).map(|d| shape[d] as f64 * spacing[d] / 2.0).fold(f64::INFINITY, f64::min)
+            + 0.5 * spacing.iter().map(|s| s * s).sum::<f64>().sqrt();
         for (p, r) in s.positions.iter().zip(&s.radii) {
             for d in 0..3 {
                 // Voxel centres span [0, (n - 1) spacing].

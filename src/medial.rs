@@ -1,0 +1,424 @@
+//! Medial positions (after refinement, with `medial`; not in the paper; see docs/method.md).
+//!
+//! Contraction and mean-position decimation leave each node at the local centre of
+//! mass of the mask, not on its medial axis (the ridge of the distance transform):
+//! pulled toward bubbles of segmentation noise, inside the bend of curved vessels,
+//! into the thicker vessel at a junction. This stage moves every node to the ridge:
+//!
+//! - a node of degree 1 or 2 moves within the plane through it orthogonal to its
+//!   branch (the line between its two neighbours, or from its one neighbour), to the
+//!   maximum of the distance transform in that cross-section;
+//! - then a junction (degree ≥ 3) moves to where its branches' centrelines meet: the
+//!   point nearest (least squares) to the lines through each branch's first stretch
+//!   beyond the junction's own ball (nodes already moved to the ridge), at most [`CAP`]
+//!   radii away. The ridge alone would not do: where a thin vessel leaves a thick one
+//!   the transform is largest on the thick one's axis, so its maximum (or plateau)
+//!   pulls the junction into the parent;
+//! - isolated nodes stay.
+//!
+//! The distance transform is the exact one of [`crate::volume`] at voxel centres
+//! (distance to the nearest background voxel centre), interpolated trilinearly, with
+//! 0 on background. The search samples the disc of radius [`CAP`] times the node's
+//! radius (at least [`MIN_CAP`] base cells) on a grid of [`STEP`] base cells (or a
+//! multiple, at most [`SAMPLES`] steps from centre to rim), climbs from the node's own sample to the
+//! first local maximum by steepest ascent
+//! (so a node never crosses a saddle of the distance transform into a neighbouring
+//! vessel: two touching vessels keep their own lines), and lands on the weighted
+//! centroid of the connected samples within [`PLATEAU`] base cells of that maximum
+//! (the discrete transform has flat ridges one or two voxels wide, whose middle is
+//! the axis). A move whose target lies on a background voxel is not made.
+//!
+//! Every curve node moves from the positions the nodes had before the stage, and
+//! every junction from those and the curve nodes' new positions (two passes, each in
+//! parallel over the nodes), so the result does not depend on the thread count. The
+//! transform is computed again here, after the contraction, rather than kept from the
+//! grid stage: it costs an EDT's time (0.9 s of a 13 s run on the 256³ bed, up to a
+//! third of a run on sparse trees) and nothing at the run's memory peak, which is the
+//! contraction's (the contracted graph is a few percent of the foreground).
+
+use crate::error::Result;
+use crate::grid::Csr;
+use crate::inside::voxel_of;
+use crate::volume::{edt_squared_rows, foreground_rows, Voxel};
+use ndarray::{ArrayView3, Axis};
+use rayon::prelude::*;
+
+/// Largest move, as a fraction of the node's radius.
+pub const CAP: f64 = 0.6;
+
+/// Smallest search radius, in base cells (`c = min(spacing)`).
+pub const MIN_CAP: f64 = 1.0;
+
+/// Finest sampling step of the search, in base cells.
+pub const STEP: f64 = 0.25;
+
+/// Most samples of the search from its centre to its rim (coarser steps than
+/// [`STEP`] for large radii).
+pub const SAMPLES: f64 = 8.0;
+
+/// A junction's branch line is fitted to the nodes between 1 and 1 + `REACH` radii
+/// of the junction (its radius, at least one base cell).
+pub const REACH: f64 = 2.0;
+
+/// Samples within this many base cells of the local maximum count as its plateau.
+pub const PLATEAU: f64 = 0.25;
+
+/// The distance transform of a mask at its foreground voxels, with random access.
+pub struct Field {
+    shape: [usize; 3],
+    spacing: [f64; 3],
+    /// Foreground voxels of row `(i, j)` are entries `starts[i * n1 + j]..starts[.. + 1]`.
+    starts: Vec<usize>,
+    /// Axis-2 index of every foreground voxel, ascending within each row.
+    ks: Vec<u32>,
+    /// Distance to the nearest background voxel centre, in base cells (`c =
+    /// min(spacing)`), so that scaling the spacing scales nothing but the positions.
+    dist: Vec<f32>,
+}
+
+impl Field {
+    /// The transform of `mask` with voxel `spacing` (rows in parallel).
+    pub fn new<T: Voxel>(mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Result<Field> {
+        let (n0, n1, n2) = mask.dim();
+        let starts = foreground_rows(mask)?;
+        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let mut dist = edt_squared_rows(mask, &starts, spacing.map(|s| s / c))?;
+        dist.par_iter_mut().for_each(|d| *d = d.sqrt());
+        let mut ks = crate::memory::try_filled(starts[n0 * n1], 0u32)?;
+        let mut rest = ks.as_mut_slice();
+        let mut parts = Vec::with_capacity(n0 * n1);
+        for w in starts.windows(2) {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(w[1] - w[0]);
+            parts.push(head);
+            rest = tail;
+        }
+        parts.into_par_iter().enumerate().for_each(|(r, part)| {
+            let row = mask.index_axis(Axis(0), r / n1);
+            let row = row.index_axis(Axis(0), r % n1);
+            for (slot, (k, _)) in part.iter_mut().zip(row.iter().enumerate().filter(|(_, v)| v.is_set())) {
+                *slot = k as u32;
+            }
+        });
+        Ok(Field { shape: [n0, n1, n2], spacing, starts, ks, dist })
+    }
+
+    /// The transform at voxel `v`, in base cells (0 on background and outside the array).
+    pub fn at(&self, v: [isize; 3]) -> f64 {
+        if (0..3).any(|d| v[d] < 0 || v[d] >= self.shape[d] as isize) {
+            return 0.0;
+        }
+        let r = v[0] as usize * self.shape[1] + v[1] as usize;
+        let (a, b) = (self.starts[r], self.starts[r + 1]);
+        match self.ks[a..b].binary_search(&(v[2] as u32)) {
+            Ok(t) => self.dist[a + t] as f64,
+            Err(_) => 0.0,
+        }
+    }
+
+    /// The transform interpolated trilinearly at `p` (physical units), in base cells.
+    pub fn interpolate(&self, p: [f64; 3]) -> f64 {
+        let x: [f64; 3] = std::array::from_fn(|d| p[d] / self.spacing[d]);
+        let lo: [f64; 3] = std::array::from_fn(|d| x[d].floor());
+        let f: [f64; 3] = std::array::from_fn(|d| x[d] - lo[d]);
+        let base: [isize; 3] = std::array::from_fn(|d| lo[d] as isize);
+        let mut sum = 0.0;
+        for corner in 0..8 {
+            let bit = |d: usize| (corner >> (2 - d)) & 1;
+            let w: f64 = (0..3).map(|d| if bit(d) == 1 { f[d] } else { 1.0 - f[d] }).product();
+            if w > 0.0 {
+                sum += w * self.at(std::array::from_fn(|d| base[d] + bit(d) as isize));
+            }
+        }
+        sum
+    }
+
+    /// True if `p` lies on a foreground voxel.
+    fn inside(&self, p: [f64; 3]) -> bool {
+        voxel_of(p, self.spacing, self.shape).is_some_and(|v| self.at(v.map(|x| x as isize)) > 0.0)
+    }
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn norm(a: [f64; 3]) -> f64 {
+    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+/// Two unit vectors orthogonal to the unit vector `t` and to each other.
+fn plane_basis(t: [f64; 3]) -> [[f64; 3]; 2] {
+    // The axis least aligned with `t` (first on ties) keeps the cross product large.
+    let a = (0..3).fold(0, |best, d| if t[d].abs() < t[best].abs() { d } else { best });
+    let mut e = [0.0; 3];
+    e[a] = 1.0;
+    let u = cross(t, e);
+    let u = u.map(|x| x / norm(u));
+    [u, cross(t, u)]
+}
+
+/// The local maximum of `field` reached from `p` over the samples `p + h (k_0 b_0 +
+/// k_1 b_1)` (`b` two orthonormal directions, `h` the step) within `radius` of `p`,
+/// placed at the weighted centroid of its plateau; `None` when `p` is already there
+/// (to the sample grid) or the target is on background.
+fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f64, c: f64) -> Option<[f64; 3]> {
+    // The step (a multiple of STEP base cells) and the samples' reach in steps
+    // depend on the radius only through integers, so that a radius rounded a hair
+    // differently (another spacing scale) gives the same sample grid.
+    let r = radius / c;
+    let h = STEP * (r / (STEP * SAMPLES) - 1e-6).ceil().max(1.0);
+    let m = (r / h + 1e-6).floor() as isize;
+    if m < 1 {
+        return None;
+    }
+    let h = h * c;
+    let side = (2 * m + 1) as usize;
+    let count = side * side;
+    let offset = |idx: usize| [(idx / side) as isize - m, (idx % side) as isize - m];
+    let index = |k: [isize; 2]| (k[0] + m) as usize * side + (k[1] + m) as usize;
+    let point = |k: [isize; 2]| -> [f64; 3] {
+        std::array::from_fn(|d| p[d] + (0..2).map(|a| k[a] as f64 * h * basis[a][d]).sum::<f64>())
+    };
+    let within = |k: [isize; 2]| k[0] * k[0] + k[1] * k[1] <= m * m;
+    // Values at every sample of the disc (NaN outside it).
+    let values: Vec<f64> = (0..count)
+        .map(|idx| {
+            let k = offset(idx);
+            if within(k) {
+                field.interpolate(point(k))
+            } else {
+                f64::NAN
+            }
+        })
+        .collect();
+    let neighbours = |k: [isize; 2]| {
+        (0..9).filter_map(move |n| {
+            let mut q = k;
+            let mut rest = n;
+            for x in q.iter_mut() {
+                *x += (rest % 3) as isize - 1;
+                rest /= 3;
+            }
+            (q != k && q.iter().all(|&x| x.abs() <= m)).then_some(q)
+        })
+    };
+    // Steepest ascent from the node's own sample (the first neighbour on ties).
+    let mut at = [0isize; 2];
+    loop {
+        let mut best = (values[index(at)], at);
+        for q in neighbours(at) {
+            let v = values[index(q)];
+            if v > best.0 {
+                best = (v, q);
+            }
+        }
+        if best.1 == at {
+            break;
+        }
+        at = best.1;
+    }
+    let peak = values[index(at)];
+    if peak.is_nan() || peak <= 0.0 {
+        return None;
+    }
+    // The plateau: samples within PLATEAU of the peak connected to it.
+    let floor = peak - PLATEAU;
+    let mut member = vec![false; count];
+    member[index(at)] = true;
+    let mut stack = vec![at];
+    while let Some(k) = stack.pop() {
+        for q in neighbours(k) {
+            let i = index(q);
+            if !member[i] && values[i] >= floor {
+                member[i] = true;
+                stack.push(q);
+            }
+        }
+    }
+    // Sums in index order, whatever order the plateau was found in.
+    let (mut w, mut sum) = (0.0, [0.0; 2]);
+    for i in (0..count).filter(|&i| member[i]) {
+        let wi = values[i] - floor;
+        w += wi;
+        for (s, k) in sum.iter_mut().zip(offset(i)) {
+            *s += wi * k as f64;
+        }
+    }
+    if sum.iter().all(|&s| s == 0.0) {
+        return None;
+    }
+    let target: [f64; 3] = std::array::from_fn(|d| p[d] + (0..2).map(|a| sum[a] / w * h * basis[a][d]).sum::<f64>());
+    field.inside(target).then_some(target)
+}
+
+/// Positions with every node moved to the medial axis (see the module). `radii` are
+/// the nodes' radii (physical units), which bound their moves.
+pub fn recentre<T: Voxel>(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    radii: &[f64],
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
+) -> Result<Vec<[f64; 3]>> {
+    let field = Field::new(mask, spacing)?;
+    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let reach = |i: usize| (CAP * radii[i]).max(MIN_CAP * c);
+    let curves: Vec<[f64; 3]> = (0..g.nodes())
+        .into_par_iter()
+        .map(|i| {
+            let p = positions[i];
+            let nb = g.neighbours(i);
+            let t = match nb.len() {
+                1 => sub(positions[nb[0] as usize], p),
+                2 => sub(positions[nb[1] as usize], positions[nb[0] as usize]),
+                _ => return p,
+            };
+            let n = norm(t);
+            (n > 0.0).then(|| climb(&field, p, plane_basis(t.map(|x| x / n)), reach(i), c)).flatten().unwrap_or(p)
+        })
+        .collect();
+    Ok((0..g.nodes())
+        .into_par_iter()
+        .map(|i| {
+            if g.neighbours(i).len() < 3 {
+                return curves[i];
+            }
+            let p = positions[i];
+            let m = meeting_point(g, &curves, radii[i].max(c), i, p);
+            let Some(m) = m else { return p };
+            let d = sub(m, p);
+            let (n, cap) = (norm(d), reach(i));
+            let target = if n > cap { std::array::from_fn(|k| p[k] + d[k] * cap / n) } else { m };
+            if field.inside(target) {
+                target
+            } else {
+                p
+            }
+        })
+        .collect())
+}
+
+/// The point nearest, in least squares, to the lines of junction `j`'s branches:
+/// each through the branch's nodes (at `curves`) between `r` and `(1 + REACH) r`
+/// from `p`, walked along nodes of degree 2 (the first node alone, on the line from
+/// `p`, when none lies there). `None` when the lines are (nearly) parallel.
+fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) -> Option<[f64; 3]> {
+    let (mut a, mut b) = ([[0.0; 3]; 3], [0.0; 3]);
+    for &first in g.neighbours(j) {
+        let (mut prev, mut cur) = (j, first as usize);
+        let mut stretch: Vec<[f64; 3]> = vec![];
+        // Each step moves one node along the branch: capped by the node count.
+        for _ in 0..g.nodes() {
+            let q = curves[cur];
+            let d = norm(sub(q, p));
+            if d > (1.0 + REACH) * r {
+                break;
+            }
+            if d >= r {
+                stretch.push(q);
+            }
+            let nb = g.neighbours(cur);
+            if nb.len() != 2 {
+                break;
+            }
+            let next = if nb[0] as usize == prev { nb[1] } else { nb[0] } as usize;
+            (prev, cur) = (cur, next);
+        }
+        let (from, to) = match stretch.as_slice() {
+            [q0, .., q1] => (*q0, *q1),
+            _ => (p, curves[first as usize]),
+        };
+        let t = sub(to, from);
+        let n = norm(t);
+        if n == 0.0 {
+            continue;
+        }
+        let t = t.map(|x| x / n);
+        // Projector onto the plane orthogonal to the line: I - t tᵀ.
+        for (row, (ar, br)) in a.iter_mut().zip(b.iter_mut()).enumerate() {
+            for (col, x) in ar.iter_mut().enumerate() {
+                let proj = f64::from(u8::from(row == col)) - t[row] * t[col];
+                *x += proj;
+                *br += proj * from[col];
+            }
+        }
+    }
+    solve3(a, b)
+}
+
+/// The solution of the symmetric 3 × 3 system `a x = b` by Cramer's rule; `None` when
+/// `a` is nearly singular (its determinant below 1e-6 of the product of its diagonal).
+fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |m: [[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(a);
+    if d.is_nan() || d.abs() <= 1e-6 * a[0][0] * a[1][1] * a[2][2] {
+        return None;
+    }
+    Some(std::array::from_fn(|k| {
+        let mut m = a;
+        for (row, &bk) in m.iter_mut().zip(&b) {
+            row[k] = bk;
+        }
+        det(m) / d
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::edt_squared;
+    use ndarray::Array3;
+
+    /// Random access gives the sparse transform's value at every foreground voxel, 0
+    /// on background and outside the array; interpolation is exact at voxel centres
+    /// and linear between two of them.
+    #[test]
+    fn the_field_reads_the_transform_at_every_voxel() {
+        let mut rnd = crate::test_rng(5);
+        let m = Array3::from_shape_fn((7, 9, 11), |_| u8::from(rnd(100) < 70));
+        let s = [1.0, 0.8, 1.5];
+        let f = Field::new(m.view(), s).unwrap();
+        // In base cells: the transform with spacing / min(spacing).
+        let mut sparse = edt_squared(m.view(), [1.25, 1.0, 1.875]).unwrap().into_iter();
+        for ((i, j, k), &v) in m.indexed_iter() {
+            let at = f.at([i as isize, j as isize, k as isize]);
+            let want = if v != 0 { (sparse.next().unwrap() as f64).sqrt() } else { 0.0 };
+            assert_eq!(at.to_bits(), (want as f32 as f64).to_bits(), "{:?}", (i, j, k));
+            let centre = [i as f64 * s[0], j as f64 * s[1], k as f64 * s[2]];
+            assert!((f.interpolate(centre) - at).abs() < 1e-12);
+        }
+        for v in [[-1, 0, 0], [0, 9, 0], [0, 0, 11], [7, 8, 10]] {
+            assert_eq!(f.at(v), 0.0);
+        }
+        let (a, b) = (f.at([3, 4, 5]), f.at([3, 4, 6]));
+        assert!((f.interpolate([3.0, 3.2, 5.25 * 1.5]) - (0.75 * a + 0.25 * b)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn three_lines_meet_where_they_cross() {
+        // Lines through (1, 2, 3) along the axes and a diagonal: their projectors summed.
+        let p = [1.0, 2.0, 3.0];
+        let mut a = [[0.0; 3]; 3];
+        let mut b = [0.0; 3];
+        for t in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.6, 0.0, 0.8]] {
+            for r in 0..3 {
+                for c in 0..3 {
+                    let proj = f64::from(u8::from(r == c)) - t[r] * t[c];
+                    a[r][c] += proj;
+                    b[r] += proj * p[c];
+                }
+            }
+        }
+        let x = solve3(a, b).unwrap();
+        assert!((0..3).all(|d| (x[d] - p[d]).abs() < 1e-12), "{x:?}");
+        // Parallel lines have no meeting point.
+        assert_eq!(solve3([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], [0.0, 1.0, 1.0]), None);
+    }
+}

@@ -1,0 +1,191 @@
+//! Radii on analytic tubes (issue 15, item 3): straight tubes of known radius at
+//! random orientations and sub-voxel axis offsets (fixed seed), drawn by both
+//! rasterisation conventions (a voxel is set when its centre is inside; when at least
+//! half of its volume is), at unit and anisotropic spacing. A node sits near the axis
+//! (up to half a voxel off it, as the flow leaves it) with two neighbours two voxels
+//! along the tube (each jittered the same way), and its EDT radius is the largest EDT
+//! of the voxels around it (decimation's max-radius transfer). The table of bias and
+//! mean absolute percentage error per radius band is printed (`--nocapture`).
+
+use ndarray::Array3;
+use vesselflow::grid::Csr;
+use vesselflow::radius::{node_radii, RadiusModel};
+use vesselflow::volume::edt_squared;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Raster {
+    /// `dist(centre, axis) <= r`.
+    Centre,
+    /// At least half of 4³ sub-samples inside.
+    Partial,
+}
+
+fn rng(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn line_distance(x: [f64; 3], o: [f64; 3], t: [f64; 3]) -> f64 {
+    let d = sub(x, o);
+    let along = dot(d, t);
+    (dot(d, d) - along * along).max(0.0).sqrt()
+}
+
+/// An infinite tube of radius `r` along the unit `t` through `o` (physical units).
+fn tube(shape: [usize; 3], spacing: [f64; 3], o: [f64; 3], t: [f64; 3], r: f64, raster: Raster) -> Array3<u8> {
+    let half_diag = 0.5 * dot(spacing, spacing).sqrt();
+    const SS: usize = 4;
+    Array3::from_shape_fn(shape, |(i, j, k)| {
+        let x = [i as f64 * spacing[0], j as f64 * spacing[1], k as f64 * spacing[2]];
+        let d = line_distance(x, o, t);
+        let inside = match raster {
+            Raster::Centre => d <= r,
+            Raster::Partial if (d - r).abs() > half_diag => d <= r,
+            Raster::Partial => {
+                let mut hits = 0;
+                for a in 0..SS {
+                    for b in 0..SS {
+                        for c in 0..SS {
+                            let s = |n: usize, d: usize| ((n as f64 + 0.5) / SS as f64 - 0.5) * spacing[d];
+                            let y = [x[0] + s(a, 0), x[1] + s(b, 1), x[2] + s(c, 2)];
+                            hits += usize::from(line_distance(y, o, t) <= r);
+                        }
+                    }
+                }
+                2 * hits >= SS * SS * SS
+            }
+        };
+        u8::from(inside)
+    })
+}
+
+struct Case {
+    r: f64,
+    /// Radii of the middle node by each model of `MODELS`.
+    got: Vec<f64>,
+}
+
+const MODELS: [(&str, RadiusModel); 3] = [
+    ("edt - 0.5", RadiusModel::Edt { offset: 0.5 }),
+    ("edt", RadiusModel::Edt { offset: 0.0 }),
+    ("section", RadiusModel::Section),
+];
+
+/// One tube of radius `r_vox` base cells, the node's radius by every model.
+fn measure(next: &mut impl FnMut() -> f64, r_vox: f64, spacing: [f64; 3], raster: Raster) -> Case {
+    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let r = r_vox * c;
+    // A random direction (uniform on the sphere) and a box holding the section's slab
+    // and disc around the centre whatever the direction.
+    let z = 2.0 * next() - 1.0;
+    let phi = std::f64::consts::TAU * next();
+    let t = [z, (1.0 - z * z).sqrt() * phi.cos(), (1.0 - z * z).sqrt() * phi.sin()];
+    let half = 3.0 * r + 6.0 * c;
+    let shape: [usize; 3] = std::array::from_fn(|d| (2.0 * half / spacing[d]).ceil() as usize + 1);
+    let o: [f64; 3] = std::array::from_fn(|d| (shape[d] / 2) as f64 * spacing[d] + (next() - 0.5) * spacing[d]);
+    let mask = tube(shape, spacing, o, t, r, raster);
+    // Node 1 near the axis at `o`, nodes 0 and 2 two cells along it, each up to half a
+    // cell off the axis in a random direction.
+    let jitter = |next: &mut dyn FnMut() -> f64, p: [f64; 3]| -> [f64; 3] {
+        let q: [f64; 3] = std::array::from_fn(|_| next() - 0.5);
+        let along = dot(q, t);
+        let off = sub(q, [along * t[0], along * t[1], along * t[2]]);
+        let n = dot(off, off).sqrt().max(1e-12);
+        let m = 0.5 * c * next();
+        std::array::from_fn(|d| p[d] + off[d] / n * m)
+    };
+    let positions: Vec<[f64; 3]> =
+        [-2.0, 0.0, 2.0].iter().map(|s| jitter(next, std::array::from_fn(|d| o[d] + s * c * t[d]))).collect();
+    // The largest EDT among the voxels within one voxel of the node (the cluster).
+    let edt = edt_squared(mask.view(), spacing).unwrap();
+    let mut it = edt.iter();
+    let mut dist = Array3::<f64>::zeros(mask.dim());
+    for (v, m) in dist.iter_mut().zip(mask.iter()) {
+        if *m != 0 {
+            *v = (*it.next().unwrap() as f64).sqrt();
+        }
+    }
+    let p = positions[1];
+    let centre: [isize; 3] = std::array::from_fn(|d| (p[d] / spacing[d]).round() as isize);
+    let mut r_edt = 0.0f64;
+    for a in -1..=1 {
+        for b in -1..=1 {
+            for e in -1..=1 {
+                let v = [centre[0] + a, centre[1] + b, centre[2] + e].map(|x| x as usize);
+                r_edt = r_edt.max(dist[v]);
+            }
+        }
+    }
+    let g = Csr::from_sorted_edges(3, &[(0, 1), (1, 2)]);
+    let got = MODELS
+        .iter()
+        .map(|&(_, model)| node_radii(model, &g, &positions, &[r_edt; 3], mask.view(), spacing)[1] / c)
+        .collect();
+    Case { r: r_vox, got }
+}
+
+/// `(bias %, MAPE %)` of model `m` over the cases.
+fn errors(cases: &[&Case], m: usize) -> (f64, f64) {
+    let rel: Vec<f64> = cases.iter().map(|c| (c.got[m] - c.r) / c.r).collect();
+    let n = rel.len() as f64;
+    (100.0 * rel.iter().sum::<f64>() / n, 100.0 * rel.iter().map(|e| e.abs()).sum::<f64>() / n)
+}
+
+const BANDS: [(f64, f64); 4] = [(1.0, 2.0), (2.0, 3.0), (3.0, 5.0), (5.0, 10.0)];
+
+/// Bias and MAPE per band (rows) and model (columns) for one convention and spacing.
+fn table(raster: Raster, spacing: [f64; 3], per_band: usize, seed: u64) -> Vec<Vec<(f64, f64)>> {
+    let mut next = rng(seed);
+    let mut cases = Vec::new();
+    for &(lo, hi) in &BANDS {
+        for _ in 0..per_band {
+            let r = lo + (hi - lo) * next();
+            cases.push(measure(&mut next, r, spacing, raster));
+        }
+    }
+    eprintln!("\n{raster:?} rasterisation, spacing {spacing:?}: bias % / MAPE % of the node radius");
+    eprintln!("| r (voxels) | {} |", MODELS.map(|m| m.0).join(" | "));
+    BANDS
+        .iter()
+        .map(|&(lo, hi)| {
+            let band: Vec<&Case> = cases.iter().filter(|c| c.r >= lo && c.r < hi).collect();
+            let row: Vec<(f64, f64)> = (0..MODELS.len()).map(|m| errors(&band, m)).collect();
+            let cells: Vec<String> = row.iter().map(|(b, e)| format!("{b:+.1} / {e:.1}")).collect();
+            eprintln!("| {lo}–{hi} | {} |", cells.join(" | "));
+            row
+        })
+        .collect()
+}
+
+/// The targets of issue 15: |bias| ≤ 3 % and MAPE ≤ 5 % for r = 2…10, both ≤ 10 % for
+/// r = 1–2, by the section model, under both conventions and at anisotropic spacing.
+/// The EDT model with METHOD.md's half-voxel offset misses them (too low), which is
+/// why the section model is the default.
+#[test]
+fn section_radii_are_right_across_scales_conventions_and_spacings() {
+    let section = MODELS.iter().position(|m| m.0 == "section").unwrap();
+    let old = MODELS.iter().position(|m| m.0 == "edt - 0.5").unwrap();
+    for (k, spacing) in [[1.0; 3], [1.6, 1.0, 1.2]].into_iter().enumerate() {
+        for (j, raster) in [Raster::Centre, Raster::Partial].into_iter().enumerate() {
+            let rows = table(raster, spacing, 24, 15 + 2 * k as u64 + j as u64);
+            for (band, row) in BANDS.iter().zip(&rows) {
+                let (bias, mape) = row[section];
+                let (b_max, m_max) = if band.0 < 2.0 { (10.0, 10.0) } else { (3.0, 5.0) };
+                assert!(bias.abs() <= b_max && mape <= m_max, "{raster:?} {spacing:?} r {band:?}: {bias} / {mape}");
+            }
+            // The old model is biased low by more than the target in the thin bands.
+            assert!(rows[1][old].0 < -5.0, "{raster:?} {spacing:?}: {:?}", rows[1][old]);
+        }
+    }
+}
