@@ -1,4 +1,4 @@
-//! Geometric graph decimation by cell hashing (METHOD.md §2.5, paper §III-E and
+//! Geometric graph decimation by cell hashing (docs/method.md §2.5, paper §III-E and
 //! §III-F): nodes that fall in the same cubic cell of side `c` (cells centred on
 //! voxel centres) become one node at their mean position with the largest radius
 //! of the group; two new nodes are joined if any of their members were.
@@ -58,6 +58,12 @@ pub const SHORT_EDGE: f64 = 0.5;
 /// eating it from its end. Pairing (rather than chaining) keeps every cluster within
 /// two cells, so the decimation stays as fine as the cell grid.
 pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
+    decimate_mapped(g, keep, c).map(|(next, _)| next)
+}
+
+/// [`decimate`] that also returns the new node of every old node (for chunked runs,
+/// which follow each voxel to its final node: [`crate::blocks`]).
+pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGraph, Vec<u32>)> {
     let n = g.positions.len();
     let keys: Vec<(u128, u32)> = (0..n)
         .into_par_iter()
@@ -136,12 +142,13 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
             ([sum[0] / len, sum[1] / len, sum[2] / len], r, g.component[m[0] as usize])
         })
         .collect();
-    Ok(NodeGraph {
+    let next = NodeGraph {
         graph: quotient(&g.graph, &map, &start, &members),
         positions: merged.iter().map(|m| m.0).collect(),
         radii: merged.iter().map(|m| m.1).collect(),
         component: merged.iter().map(|m| m.2).collect(),
-    })
+    };
+    Ok((next, map))
 }
 
 /// The members of every cluster in increasing node order (a counting sort):

@@ -2,8 +2,8 @@
 //!
 //! Turns a 3-D binary vessel mask into a centreline graph with radii by Laplacian
 //! flow on geometric graphs (Damseh et al., "Laplacian Flow Dynamics on Geometric
-//! Graphs for Anatomical Modeling of Cerebrovascular Networks"), as specified in
-//! `METHOD.md`. One stage per module, in pipeline order:
+//! Graphs for Anatomical Modeling of Cerebrovascular Networks"), with the departures listed
+//! in `docs/method.md`. One stage per module, in pipeline order:
 //!
 //! | module | stage | paper |
 //! |---|---|---|
@@ -16,9 +16,12 @@
 //! | [`decimate`] | cell-hash clustering with max-radius transfer | §III-E, §III-F |
 //! | [`cycles`] | short fundamental cycles: convergence area and refinement | §III-C, §III-G, eqs. 10–11 |
 //! | [`inside`] | nodes on background voxels moved to the nearest vessel voxel | — |
+//! | [`medial`] | nodes moved onto the ridge of the distance transform (`medial`) | — |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
+//! | [`radius`] | node radii: cross-section area, or the EDT less a constant | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
+//! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
 //! | [`memory`] | the run's peak memory estimated from the mask, the `max_memory` guard | — |
 //! | [`shapes`] | analytic test volumes and the built-in demo volume | — |
@@ -36,6 +39,7 @@
 //! assert!(skel.degrees().iter().all(|&d| d <= 2)); // a path
 //! ```
 
+pub mod blocks;
 pub mod cancel;
 pub mod cycles;
 pub mod decimate;
@@ -45,10 +49,12 @@ pub mod graph;
 pub mod grid;
 pub mod inside;
 pub mod laplacian;
+pub mod medial;
 pub mod memory;
 pub mod params;
 pub mod pipeline;
 pub mod precondition;
+pub mod radius;
 pub mod shapes;
 pub mod solver;
 pub mod volume;

@@ -1,18 +1,21 @@
 //! The Skeletonizer: EDT → grid graph → contraction (Algorithm 1) → refinement
 //! (§III-G) → output, with per-stage timings and a progress observer.
 
+use crate::blocks::{follow, VoxelFate};
 use crate::cancel::{self, Stop};
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
-use crate::decimate::{decimate, NodeGraph, CELL_LIMIT};
+use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
 use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled};
-use crate::inside::{keep_inside, loop_of_the_mask};
+use crate::inside::{keep_inside, loop_of_the_mask, LOOP_RADIUS_SHIFT};
 use crate::laplacian;
+use crate::medial;
 use crate::memory;
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
+use crate::radius::{node_radii, RadiusModel};
 use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
 use ndarray::ArrayView3;
@@ -28,8 +31,9 @@ pub struct Progress {
     pub iteration: usize,
     /// Nodes in the graph now.
     pub nodes: usize,
-    /// Stage-specific measure: for `"contract"`, `A_t / (stop_ratio * A_ref)`
-    /// (the run stops when it reaches 1); for `"refine"`, the cycles collapsed.
+    /// The convergence measure after a contraction iteration: the short-cycle area
+    /// over the stop level, `A_t / (stop_ratio * A_ref)` (the contraction stops when it
+    /// reaches 1). NaN in the other stages, which have no such measure.
     pub measure: f64,
 }
 
@@ -90,12 +94,24 @@ pub fn debug_panic(stage: &str) {
 /// when given ([`slab_axes`]), which changes its rounding, not its minimiser. Runs on
 /// the current rayon pool.
 pub fn contract_step(
-    mut g: NodeGraph,
+    g: NodeGraph,
     p: &Params,
     c: f64,
     axes: Option<[usize; 3]>,
     clock: &mut StageClock,
 ) -> Result<(NodeGraph, SolveStats)> {
+    contract_step_mapped(g, p, c, axes, clock).map(|(next, stats, _)| (next, stats))
+}
+
+/// [`contract_step`] that also returns the new node of every old node
+/// ([`decimate_mapped`]).
+pub fn contract_step_mapped(
+    mut g: NodeGraph,
+    p: &Params,
+    c: f64,
+    axes: Option<[usize; 3]>,
+    clock: &mut StageClock,
+) -> Result<(NodeGraph, SolveStats, Vec<u32>)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
     cancel::checkpoint()?;
     let order = axes.map(|axes| clock.time("solve", || slab_order(&g.positions, c, axes)));
@@ -136,8 +152,8 @@ pub fn contract_step(
         }),
         None => moved,
     };
-    let next = clock.time("decimate", || decimate(&g, &skeletal, c))?;
-    Ok((next, stats))
+    let (next, map) = clock.time("decimate", || decimate_mapped(&g, &skeletal, c))?;
+    Ok((next, stats, map))
 }
 
 /// Hand the pages of freed memory back to the system. glibc keeps freed blocks below
@@ -227,6 +243,20 @@ impl Skeletonizer {
         stop: &Stop,
         observer: &mut dyn FnMut(&Progress) -> bool,
     ) -> Result<Skeleton> {
+        self.run_tracked(mask, offset, spacing, stop, observer, false).map(|(skeleton, _)| skeleton)
+    }
+
+    /// [`Skeletonizer::run_block_with_stop`] that, with `track`, also follows every
+    /// foreground voxel to its output node ([`VoxelFate`], for chunked runs).
+    pub(crate) fn run_tracked<T: Voxel>(
+        &self,
+        mask: ArrayView3<'_, T>,
+        offset: [i64; 3],
+        spacing: [f64; 3],
+        stop: &Stop,
+        observer: &mut dyn FnMut(&Progress) -> bool,
+        track: bool,
+    ) -> Result<(Skeleton, Option<VoxelFate>)> {
         check_spacing(spacing)?;
         check_shape(mask)?;
         let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
@@ -265,14 +295,15 @@ impl Skeletonizer {
             pool.install(|| edt_squared_rows(mask, &starts, spacing))
         })?;
         stop.check()?;
-        report(observer, "edt", 0, 0, 0.0)?;
+        report(observer, "edt", 0, 0, f64::NAN)?;
         let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, p)))?;
         stop.check()?;
         drop(edt);
         let n = grid.positions.len();
         info.foreground_voxels = n;
         info.mask_components = grid.components;
-        report(observer, "grid", 0, n, 0.0)?;
+        report(observer, "grid", 0, n, f64::NAN)?;
+        let mut fate = track.then(|| VoxelFate::new(&grid));
         let mut g =
             NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
 
@@ -291,7 +322,9 @@ impl Skeletonizer {
         let mut a_t = a0;
         info.converged = a_t <= info.area_reference;
         while !info.converged && info.iterations < p.max_iterations {
-            let (next, stats) = pool.install(|| contract_step(std::mem::take(&mut g), p, c, axes, &mut clock))?;
+            let (next, stats, map) =
+                pool.install(|| contract_step_mapped(std::mem::take(&mut g), p, c, axes, &mut clock))?;
+            follow(&mut fate, &map);
             g = next;
             a_t = clock.time("cycles", || area(&g));
             stop.check()?;
@@ -314,7 +347,7 @@ impl Skeletonizer {
 
         // Refinement (§III-G).
         let max_area = p.refine_area * c * c;
-        let shift = p.radius_correction * c;
+        let shift = LOOP_RADIUS_SHIFT * c;
         info.refine_converged = false;
         while info.refine_iterations < p.max_refine_iterations {
             let step = clock.time("refine", || {
@@ -322,18 +355,20 @@ impl Skeletonizer {
                 pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole))
             });
             stop.check()?;
-            let Some((positions, moved, kept)) = step else {
+            let Some((positions, moved, _)) = step else {
                 info.refine_converged = true;
                 break;
             };
             g.positions = positions;
             let keep: Vec<bool> = moved.iter().map(|m| !m).collect();
-            g = clock.time("refine", || pool.install(|| decimate(&g, &keep, c)))?;
+            let (next, map) = clock.time("refine", || pool.install(|| decimate_mapped(&g, &keep, c)))?;
+            follow(&mut fate, &map);
+            g = next;
             info.refine_iterations += 1;
-            report(observer, "refine", info.refine_iterations, g.positions.len(), kept as f64)?;
+            report(observer, "refine", info.refine_iterations, g.positions.len(), f64::NAN)?;
         }
         if info.refine_iterations == 0 {
-            report(observer, "refine", 0, g.positions.len(), 0.0)?;
+            report(observer, "refine", 0, g.positions.len(), f64::NAN)?;
         }
         if !info.refine_converged {
             let hole = |c: &Cycle| loop_of_the_mask(c, &g.positions, &g.radii, shift, mask, spacing);
@@ -342,10 +377,22 @@ impl Skeletonizer {
             stop.check()?;
         }
 
+        if p.medial {
+            let moved = clock.time("medial", || {
+                pool.install(|| medial::recentre(&g.graph, &g.positions, &g.radii, mask, spacing))
+            })?;
+            g.positions = moved;
+            stop.check()?;
+        }
+
         let out = clock.time("output", || {
-            let shift = p.radius_correction * c;
-            let radii: Vec<f64> = g.radii.iter().map(|r| (r - shift).max(0.0)).collect();
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
+            let shift = p.radius_correction * c;
+            let radii: Vec<f64> = pool
+                .install(|| node_radii(RadiusModel::Section, &g.graph, &g.positions, &g.radii, mask, spacing))
+                .into_iter()
+                .map(|r| (r - shift).max(0.0))
+                .collect();
             let positions = if p.anchor_ends {
                 // A moved end can stop past a background voxel the line grazed
                 // between two samples: it is kept inside once more.
@@ -367,9 +414,9 @@ impl Skeletonizer {
         });
         stop.check()?;
         check_skeleton(&out)?;
-        report(observer, "output", 0, out.positions.len(), 0.0)?;
+        report(observer, "output", 0, out.positions.len(), f64::NAN)?;
         info.stage_seconds = clock.0;
-        Ok(Skeleton { info, ..out })
+        Ok((Skeleton { info, ..out }, fate))
     }
 }
 

@@ -47,7 +47,12 @@ def sigterm_raises() -> Iterator[list[bool]]:
 
 def main() -> None:
     """Run the command line with ``sys.argv`` and exit with its status: 143 after
-    SIGTERM (the run stops, and no output file or temporary file is left)."""
+    SIGTERM (the run stops, and no output file or temporary file is left).
+    ``vesselflow distributed ...`` is the chunked run on Dask (Python only)."""
+    if sys.argv[1:2] == ["distributed"]:
+        from vesselflow.distributed import main as distributed_main
+
+        sys.exit(distributed_main(sys.argv[2:]))
     try:
         with sigterm_raises() as terminated:
             # SIGTERM while the run polls for signals stops the run (the program says

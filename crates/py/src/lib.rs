@@ -6,6 +6,7 @@
 //! `vesselflow` Python package, which wraps this module.
 
 mod binarise;
+mod blocks;
 mod cli;
 mod errors;
 mod graph_io;
@@ -25,6 +26,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(memory::memory_estimate, m)?)?;
     m.add_function(wrap_pyfunction!(memory::usable_memory, m)?)?;
     m.add_function(wrap_pyfunction!(graph_io::write_graph, m)?)?;
+    m.add_function(wrap_pyfunction!(graph_io::to_frame, m)?)?;
     m.add_function(wrap_pyfunction!(cli::cli_main, m)?)?;
+    blocks::register(m)?;
     Ok(())
 }

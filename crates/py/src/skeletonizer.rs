@@ -16,7 +16,7 @@ use vesselflow_io::MaskRule;
 /// The method with a fixed set of parameters (see `vesselflow.Skeletonizer`).
 #[pyclass(module = "vesselflow._core", name = "Skeletonizer", frozen)]
 pub struct PySkeletonizer {
-    inner: vesselflow::Skeletonizer,
+    pub(crate) inner: vesselflow::Skeletonizer,
 }
 
 #[pymethods]
@@ -185,7 +185,7 @@ fn run_typed<T: Voxel + Element>(
 }
 
 /// `(positions (N, 3) float64, radii (N,) float64, edges (E, 2) int64, info dict)`.
-fn skeleton_to_py(py: Python<'_>, sk: Skeleton) -> PyResult<Bound<'_, PyTuple>> {
+pub(crate) fn skeleton_to_py(py: Python<'_>, sk: Skeleton) -> PyResult<Bound<'_, PyTuple>> {
     let shape_err = |e: ndarray::ShapeError| PyRuntimeError::new_err(e.to_string());
     let n = sk.positions.len();
     let positions = Array2::from_shape_vec((n, 3), sk.positions.as_flattened().to_vec()).map_err(shape_err)?;

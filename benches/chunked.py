@@ -1,0 +1,282 @@
+"""Chunked runs on Dask against the single run: ``benches/results/chunked.md``.
+
+    python benches/chunked.py [--block 128] [--workers 2] [--out benches/results/chunked.md]
+
+Volumes: the 256³ synthetic bed (``vesselflow.synth.vascular_bed``, seed 0) and a
+512x512x256 tiling of four beds (seeds 0-3), stored as Zarr (chunks of the block size).
+For each: the single run in a fresh subprocess (wall time, peak RSS) and the chunked run
+(``vesselflow.distributed.skeletonize``, blocks of ``--block``³) on a fresh LocalCluster
+of ``--workers`` single-threaded worker processes (wall time, every worker's peak RSS);
+then components and cycle rank of both graphs, NetMets at sigma = 1 voxel between them,
+the radii of matched nodes (each chunked node and the nearest single-run node within
+1 voxel), determinism (the run again on 1 worker: identical arrays), a worker killed
+mid-run (same graph), and a resume after deleting parts from the workdir (blocks
+recomputed). Ends with the scaling law and projections for 2048³ and 10000³.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import distributed
+import networkx as nx
+import numpy as np
+import zarr
+from scipy.spatial import cKDTree
+
+import vesselflow
+from vesselflow import distributed as vd
+from vesselflow.metrics import netmets
+from vesselflow.synth import vascular_bed
+
+SINGLE = """
+import json, resource, sys, time
+import numpy as np, zarr, vesselflow
+mask = np.asarray(zarr.open_array(sys.argv[1], mode="r")[...])
+t = time.perf_counter()
+g = vesselflow.skeletonize(mask)
+wall = time.perf_counter() - t
+np.savez(sys.argv[2], positions=g.positions, radii=g.radii, edges=g.edges)
+print(json.dumps({"wall": wall, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
+
+
+def _topology(g: vesselflow.VesselGraph) -> tuple[int, int]:
+    nxg = g.to_networkx()
+    comps = nx.number_connected_components(nxg)
+    return comps, nxg.number_of_edges() - nxg.number_of_nodes() + comps
+
+
+def _peak() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _cluster(workers: int) -> tuple[Any, Any]:
+    cluster = distributed.LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=50,
+    )
+    return cluster, distributed.Client(cluster)
+
+
+def _chunked(path: str, block: int, workers: int, **kw: Any) -> tuple[Any, float, list[int]]:
+    cluster, client = _cluster(workers)
+    try:
+        base = list(client.run(_peak).values())
+        t = time.perf_counter()
+        g = vd.skeletonize(path, chunks=block, client=client, **kw)
+        wall = time.perf_counter() - t
+        peaks = list(client.run(_peak).values())
+    finally:
+        client.close()
+        cluster.close()
+    return g, wall, [max(p, b) for p, b in zip(peaks, base)]
+
+
+def _same(a: Any, b: Any) -> bool:
+    return all(
+        np.array_equal(x, y)
+        for x, y in [(a.positions, b.positions), (a.radii, b.radii), (a.edges, b.edges)]
+    )
+
+
+def _killed_run(path: str, block: int, workers: int, workdir: Path) -> tuple[Any, bool]:
+    """The run with one worker process killed after the second block."""
+    cluster, client = _cluster(workers)
+    killed = [False]
+    pids = client.run(os.getpid)
+
+    def progress(done: int, total: int) -> None:
+        if done == 2 and not killed[0]:
+            os.kill(pids[sorted(pids)[0]], signal.SIGKILL)
+            killed[0] = True
+
+    try:
+        g = vd.skeletonize(path, chunks=block, client=client, workdir=workdir, progress=progress)
+    finally:
+        client.close()
+        cluster.close()
+    return g, killed[0]
+
+
+def _mb(x: float) -> str:
+    return f"{x / 1e6:.0f} MB"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--block", type=int, default=128)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--out", default="benches/results/chunked.md")
+    args = parser.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="vf-chunked-"))
+    beds = [vascular_bed(256, seed=s) for s in range(4)]
+    tiling = np.concatenate(
+        [np.concatenate(beds[0:2], axis=0), np.concatenate(beds[2:4], axis=0)], axis=1
+    )
+    volumes = {"bed 256³": beds[0], "tiling 512x512x256": tiling}
+    rows = []
+    for name, mask in volumes.items():
+        path = str(tmp / f"{len(rows)}.zarr")
+        z = zarr.open_array(path, mode="w", shape=mask.shape, dtype=bool, chunks=(args.block,) * 3)
+        z[...] = mask
+        single_npz = tmp / f"{len(rows)}.npz"
+        out = subprocess.run(
+            [sys.executable, "-c", SINGLE, path, str(single_npz)],
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+        single = json.loads(out.stdout.strip().splitlines()[-1])
+        with np.load(single_npz) as f:
+            one = vesselflow.VesselGraph(f["positions"], f["radii"], f["edges"])
+        g, wall, peaks = _chunked(path, args.block, args.workers)
+        g1, wall1, _ = _chunked(path, args.block, 1)
+        killed, did_kill = _killed_run(path, args.block, args.workers, tmp / f"w{len(rows)}")
+        parts = sorted((tmp / f"w{len(rows)}" / "blocks").glob("*.npz"))
+        for p in parts[:3]:
+            p.unlink()
+        resumed, _, _ = _chunked(path, args.block, args.workers, workdir=tmp / f"w{len(rows)}")
+        rates = netmets(one, g, 1.0)
+        dist, idx = cKDTree(one.positions).query(g.positions)
+        matched = dist <= 1.0
+        rel = np.abs(g.radii[matched] - one.radii[idx[matched]]) / np.maximum(
+            one.radii[idx[matched]], 1e-9
+        )
+        rows.append(
+            {
+                "name": name,
+                "shape": mask.shape,
+                "fg": int(mask.sum()),
+                "single": single,
+                "one": one,
+                "g": g,
+                "wall": wall,
+                "wall1": wall1,
+                "peaks": peaks,
+                "rates": rates,
+                "matched": float(matched.mean()),
+                "radius_median": float(np.median(rel)) if rel.size else float("nan"),
+                "radius_mean": float(rel.mean()) if rel.size else float("nan"),
+                "radius_within_2pc": float((rel <= 0.02).mean()) if rel.size else float("nan"),
+                "deterministic": _same(g, g1),
+                "killed": did_kill,
+                "killed_same": _same(g, killed),
+                "resumed": (resumed.info["blocks_computed"], resumed.info["blocks_reused"]),
+                "resumed_same": _same(g, resumed),
+            }
+        )
+        print(name, "done", time.strftime("%H:%M:%S"), flush=True)
+    Path(args.out).write_text(_report(rows, args))
+
+
+def _report(rows: list[dict[str, Any]], args: Any) -> str:
+    lines = [
+        "# Chunked runs on Dask against the single run",
+        "",
+        f"Generated by `python benches/chunked.py --block {args.block} --workers "
+        f"{args.workers}` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+        f"{os.cpu_count()} cores (shared). Blocks of {args.block}³, halo automatic.",
+        "",
+        "| volume | fg voxels | blocks (empty) | halo | components 1 / chunked | cycle rank "
+        "1 / chunked | GFNR | GFPR | CFNR | CFPR |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        t1, tc = _topology(r["one"]), _topology(r["g"])
+        rt = r["rates"]
+        info = r["g"].info
+        lines.append(
+            f"| {r['name']} | {r['fg']} | {info['blocks']} ({info['blocks_empty']}) | "
+            f"{info['halo']} | {t1[0]} / {tc[0]} | {t1[1]} / {tc[1]} | {rt['gfnr']:.4f} | "
+            f"{rt['gfpr']:.4f} | {rt['cfnr']:.4f} | {rt['cfpr']:.4f} |"
+        )
+    lines += [
+        "",
+        "| volume | nodes 1 / chunked | matched nodes (≤ 1 voxel) | radius rel. diff. "
+        "median / mean | matched radii within 2 % |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['name']} | {r['one'].n_nodes} / {r['g'].n_nodes} | {r['matched']:.3f} | "
+            f"{100 * r['radius_median']:.2f} % / {100 * r['radius_mean']:.2f} % | "
+            f"{100 * r['radius_within_2pc']:.1f} % |"
+        )
+    lines += [
+        "",
+        "| volume | single: wall / peak RSS | chunked: wall (2 workers) / (1 worker) | "
+        "worker peak RSS | time ratio (2 workers) |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        s = r["single"]
+        lines.append(
+            f"| {r['name']} | {s['wall']:.1f} s / {_mb(s['peak'])} | {r['wall']:.1f} s / "
+            f"{r['wall1']:.1f} s | {', '.join(_mb(p) for p in r['peaks'])} | "
+            f"{r['wall'] / s['wall']:.2f}x |"
+        )
+    lines += [
+        "",
+        "| volume | deterministic (2 vs 1 worker) | worker killed: same graph | "
+        "resume: blocks computed / reused, same graph |",
+        "|---|---|---|---|",
+    ]
+    for r in rows:
+        c, u = r["resumed"]
+        lines.append(
+            f"| {r['name']} | {r['deterministic']} | {r['killed'] and r['killed_same']} | "
+            f"{c} / {u}, {r['resumed_same']} |"
+        )
+    a, b = rows[0], rows[-1]
+    blocks = [max(r["g"].info["blocks_computed"], 1) for r in (a, b)]
+    per_block = [r["wall1"] / n for r, n in zip((a, b), blocks)]
+    density = b["fg"] / np.prod(b["shape"])
+    lines += [
+        "",
+        "## Scaling law and projections",
+        "",
+        f"Time per {args.block}³ block on one worker: {per_block[0]:.2f} s (256³) and "
+        f"{per_block[1]:.2f} s (512x512x256); worker peak RSS "
+        f"{_mb(max(a['peaks']))} and {_mb(max(b['peaks']))} (4x the volume: "
+        f"{max(b['peaks']) / max(a['peaks']):.2f}x); the single run's peak grows "
+        f"{b['single']['peak'] / a['single']['peak']:.2f}x.",
+        "The block phase is linear in the blocks: time = blocks x t_block / workers; the "
+        "merge (one process) is linear in the cells (centreline nodes) and face voxels.",
+        "",
+        "| volume | blocks of 128³ (at this density) | 1 worker | 64 workers | 512 workers |",
+        "|---|---|---|---|---|",
+    ]
+    t_block = per_block[1]
+    for n in (2048, 10000):
+        nb = (n / args.block) ** 3
+        lines.append(
+            f"| {n}³ | {nb:.0f} | {nb * t_block / 3600:.1f} h | {nb * t_block / 64 / 3600:.2f} h "
+            f"| {nb * t_block / 512 / 3600:.2f} h |"
+        )
+    lines += [
+        "",
+        f"At {100 * density:.1f} % foreground. The merge holds every cell and face voxel in one "
+        "process: about 120 bytes per centreline node; 2048³ at 5 % (≈ 430 M vessel voxels, "
+        "≈ 15 M nodes) needs a few GB there, 10000³ (≈ 2 G nodes) does not fit one process "
+        "and needs the merge itself split by region (not done).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

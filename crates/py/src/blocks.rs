@@ -1,0 +1,122 @@
+//! `vesselflow._core.contract_block` and `merge_blocks`: the two phases of a chunked
+//! run ([`vesselflow::blocks`]), a block part as a dict of NumPy arrays.
+
+use ndarray::Array2;
+use numpy::prelude::*;
+use numpy::{PyArray1, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyTuple};
+use vesselflow::blocks::{BlockPart, CellSum};
+use vesselflow::Stop;
+
+use crate::errors;
+use crate::skeletonizer::{skeleton_to_py, PySkeletonizer};
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(contract_block, m)?)?;
+    m.add_function(wrap_pyfunction!(merge_blocks, m)?)?;
+    Ok(())
+}
+
+/// The block phase on `mask` (uint8, block plus halo) whose voxel `(0, 0, 0)` is voxel
+/// `origin` of a volume of shape `volume`; `core` the core's `[start, stop)` per axis.
+/// Returns the part as a dict of arrays (see `merge_blocks`).
+#[pyfunction]
+pub fn contract_block<'py>(
+    py: Python<'py>,
+    skeletonizer: PyRef<'py, PySkeletonizer>,
+    mask: PyReadonlyArray3<'py, u8>,
+    origin: [i64; 3],
+    core: [[usize; 2]; 3],
+    volume: [usize; 3],
+    spacing: [f64; 3],
+) -> PyResult<Bound<'py, PyDict>> {
+    let view = mask.as_array();
+    let sk = &skeletonizer.inner;
+    let context = || format!("block at {origin:?}, shape {:?}, core {core:?}", view.shape());
+    let part = py
+        .detach(|| errors::no_panic(context, || sk.contract_block(view, origin, core, volume, spacing, &Stop::new())))?
+        .map_err(errors::core)?;
+    part_to_py(py, part)
+}
+
+/// The merge phase: the graph of the `parts` (dicts from `contract_block`, in a fixed
+/// block order) as `(positions, radii, edges, info)`.
+#[pyfunction]
+pub fn merge_blocks<'py>(
+    py: Python<'py>,
+    skeletonizer: PyRef<'py, PySkeletonizer>,
+    parts: Vec<Bound<'py, PyDict>>,
+    volume: [usize; 3],
+    spacing: [f64; 3],
+) -> PyResult<Bound<'py, PyTuple>> {
+    let parts = parts.iter().map(part_from_py).collect::<PyResult<Vec<_>>>()?;
+    let sk = &skeletonizer.inner;
+    let skeleton = py
+        .detach(|| errors::no_panic(|| format!("{} blocks", parts.len()), || sk.merge_blocks(&parts, volume, spacing)))?
+        .map_err(errors::core)?;
+    skeleton_to_py(py, skeleton)
+}
+
+fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
+    let rows = |v: Vec<f64>, n: usize| Array2::from_shape_vec((n, 3), v);
+    let shape_err = |e: ndarray::ShapeError| PyValueError::new_err(e.to_string());
+    let n = part.cells.len();
+    let d = PyDict::new(py);
+    d.set_item("component", PyArray1::from_iter(py, part.cells.iter().map(|s| s.component)))?;
+    let cells = Array2::from_shape_vec((n, 3), part.cells.iter().flat_map(|s| s.cell).collect()).map_err(shape_err)?;
+    d.set_item("cell", cells.into_pyarray(py))?;
+    let sums = rows(part.cells.iter().flat_map(|s| s.sum).collect(), n).map_err(shape_err)?;
+    d.set_item("sum", sums.into_pyarray(py))?;
+    d.set_item("count", PyArray1::from_iter(py, part.cells.iter().map(|s| s.count)))?;
+    d.set_item("radius", PyArray1::from_iter(py, part.cells.iter().map(|s| s.radius)))?;
+    for (name, pairs) in [("edges", &part.edges), ("bridges", &part.bridges)] {
+        let a = Array2::from_shape_vec((pairs.len(), 2), pairs.as_flattened().to_vec()).map_err(shape_err)?;
+        d.set_item(name, a.into_pyarray(py))?;
+    }
+    d.set_item("face_voxel", PyArray1::from_iter(py, part.faces.iter().map(|f| f.0)))?;
+    d.set_item("face_cell", PyArray1::from_iter(py, part.faces.iter().map(|f| f.1)))?;
+    Ok(d)
+}
+
+fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
+    let get = |name: &str| {
+        d.get_item(name)?.ok_or_else(|| PyValueError::new_err(format!("block part has no `{name}` array")))
+    };
+    let component: PyReadonlyArray1<u32> = get("component")?.extract()?;
+    let cell: PyReadonlyArray2<i64> = get("cell")?.extract()?;
+    let sum: PyReadonlyArray2<f64> = get("sum")?.extract()?;
+    let count: PyReadonlyArray1<u64> = get("count")?.extract()?;
+    let radius: PyReadonlyArray1<f64> = get("radius")?.extract()?;
+    let (component, cell, sum, count, radius) =
+        (component.as_array(), cell.as_array(), sum.as_array(), count.as_array(), radius.as_array());
+    let n = component.len();
+    if cell.dim() != (n, 3) || sum.dim() != (n, 3) || count.len() != n || radius.len() != n {
+        return Err(PyValueError::new_err("block part arrays disagree in length"));
+    }
+    let cells = (0..n)
+        .map(|i| CellSum {
+            component: component[i],
+            cell: std::array::from_fn(|d| cell[[i, d]]),
+            sum: std::array::from_fn(|d| sum[[i, d]]),
+            count: count[i],
+            radius: radius[i],
+        })
+        .collect();
+    let pairs = |name: &str| -> PyResult<Vec<[u32; 2]>> {
+        let a: PyReadonlyArray2<u32> = get(name)?.extract()?;
+        let a = a.as_array();
+        if a.ncols() != 2 {
+            return Err(PyValueError::new_err(format!("block part `{name}` must have 2 columns")));
+        }
+        Ok(a.rows().into_iter().map(|r| [r[0], r[1]]).collect())
+    };
+    let voxel: PyReadonlyArray1<u64> = get("face_voxel")?.extract()?;
+    let face_cell: PyReadonlyArray1<u32> = get("face_cell")?.extract()?;
+    if voxel.len() != face_cell.len() {
+        return Err(PyValueError::new_err("block part face arrays disagree in length"));
+    }
+    let faces = voxel.as_array().iter().copied().zip(face_cell.as_array().iter().copied()).collect();
+    Ok(BlockPart { cells, edges: pairs("edges")?, bridges: pairs("bridges")?, faces })
+}

@@ -1,0 +1,474 @@
+//! Chunked runs for volumes too large for one process (whole organs): a block phase
+//! that runs on every block of the volume independently, and a merge phase that joins
+//! the blocks' results into one graph.
+//!
+//! **Block phase** ([`Skeletonizer::contract_block`]): a block is read with a halo
+//! around its *core* (the cores tile the volume, each voxel in exactly one). The whole
+//! method runs on block plus halo (EDT, grid, contraction, refinement, output), every
+//! foreground voxel followed to its output node ([`VoxelFate`]). Only core voxels are
+//! reported, and each one decides, alone, the global cell of its node's position
+//! (`round(p / c)`, `c` the base cell): a cell key has exactly one owner per voxel, so
+//! float differences between overlapping blocks can never put a voxel in two cells.
+//! The block returns per-cell partial sums (positions, voxel count, largest radius)
+//! keyed by (block-local mask component, cell), the cell pairs joined by its grid
+//! edges between core voxels, and its core voxels on the core's faces.
+//!
+//! **Merge phase** ([`Skeletonizer::merge_blocks`]): the face voxels of neighbouring
+//! cores are paired (26-neighbours in different blocks); those pairs join the blocks'
+//! mask components into global ones (union–find) and give the cell pairs across seams.
+//! Partial sums with equal (global component, cell) are added in block order (fixed,
+//! so the sums are the same bit for bit for any worker count or schedule). Cells become
+//! nodes at their mean position with the largest radius; cell pairs become edges, and
+//! corner-only contacts bridge what the edges leave apart, as [`crate::grid::build`]
+//! does, so every mask component is one graph component. Finally refinement
+//! ([`crate::cycles::refine_step`]) collapses the short cycles that seams made: only
+//! cycles through a seam node are considered (every other cycle was already judged by
+//! its block, which had the mask).
+
+use crate::cancel::Stop;
+use crate::cycles::{refine_step, Cycle};
+use crate::decimate::{cell_of, decimate_mapped, NodeGraph};
+use crate::error::{Error, Result};
+use crate::graph::{RunInfo, Skeleton};
+use crate::grid::{Csr, GridGraph};
+use crate::params::Connectivity;
+use crate::pipeline::{check_skeleton, Skeletonizer};
+use crate::volume::Voxel;
+use ndarray::ArrayView3;
+use petgraph::unionfind::UnionFind;
+use std::collections::HashMap;
+
+/// Where every foreground voxel of a run went: its node now (voxels in C order), its
+/// mask component, and the initial grid graph.
+#[derive(Debug, Clone)]
+pub struct VoxelFate {
+    pub node: Vec<u32>,
+    pub component: Vec<u32>,
+    pub grid: Csr,
+}
+
+impl VoxelFate {
+    pub(crate) fn new(grid: &GridGraph) -> VoxelFate {
+        VoxelFate {
+            node: (0..grid.positions.len() as u32).collect(),
+            component: grid.component.clone(),
+            grid: grid.graph.clone(),
+        }
+    }
+}
+
+/// Follow a decimation: `map` gives the new node of every old node.
+pub(crate) fn follow(fate: &mut Option<VoxelFate>, map: &[u32]) {
+    if let Some(f) = fate {
+        for n in &mut f.node {
+            *n = map[*n as usize];
+        }
+    }
+}
+
+/// The partial sums of one cell from one block's core voxels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CellSum {
+    /// Mask component, numbered within the block.
+    pub component: u32,
+    /// Global cell, `round(p / c)`.
+    pub cell: [i64; 3],
+    /// Sum of the voxels' node positions (global, physical units).
+    pub sum: [f64; 3],
+    /// Number of core voxels.
+    pub count: u64,
+    /// Largest output radius of the voxels' nodes.
+    pub radius: f64,
+}
+
+/// What the block phase returns for one block.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BlockPart {
+    /// Per-cell partial sums, sorted by (component, cell).
+    pub cells: Vec<CellSum>,
+    /// Pairs of `cells` indices joined by a grid edge between core voxels, sorted.
+    pub edges: Vec<[u32; 2]>,
+    /// Pairs of `cells` indices of 26-neighbouring core voxels not in `edges`, sorted.
+    pub bridges: Vec<[u32; 2]>,
+    /// Core voxels on a face of the core shared with another block: global C-order
+    /// voxel index and their `cells` index, sorted by voxel.
+    pub faces: Vec<(u64, u32)>,
+}
+
+/// The 13 offsets of a 26-neighbourhood that come later in C order.
+fn forward_offsets() -> Vec<[i64; 3]> {
+    let mut v = vec![];
+    for a in -1..=1i64 {
+        for b in -1..=1i64 {
+            for c in -1..=1i64 {
+                if (a, b, c) > (0, 0, 0) {
+                    v.push([a, b, c]);
+                }
+            }
+        }
+    }
+    v
+}
+
+/// Whether a neighbour offset is a grid edge of `connectivity` (else a bridge).
+fn is_edge_offset(o: [i64; 3], connectivity: Connectivity) -> bool {
+    let sq = o.iter().map(|x| x * x).sum::<i64>();
+    sq <= match connectivity {
+        Connectivity::Six => 1,
+        Connectivity::Eighteen => 2,
+        Connectivity::TwentySix => 3,
+    }
+}
+
+/// `v` less the items marked in `drop`.
+fn without<T>(v: Vec<T>, drop: &[bool]) -> Vec<T> {
+    v.into_iter().zip(drop).filter(|(_, &d)| !d).map(|(x, _)| x).collect()
+}
+
+fn sorted_pairs(mut v: Vec<[u32; 2]>) -> Vec<[u32; 2]> {
+    v.sort_unstable();
+    v.dedup();
+    v
+}
+
+impl Skeletonizer {
+    /// The block phase of a chunked run (module doc). `mask` is the block with its halo;
+    /// its voxel `(0, 0, 0)` is voxel `origin` of the whole volume of shape `volume`;
+    /// `core[d]` is the half-open range of the core along axis `d` in block indices.
+    /// A pure function of (block, origin, core, spacing, parameters); `stop` ends it early
+    /// with [`Error::Interrupted`].
+    pub fn contract_block<T: Voxel>(
+        &self,
+        mask: ArrayView3<'_, T>,
+        origin: [i64; 3],
+        core: [[usize; 2]; 3],
+        volume: [usize; 3],
+        spacing: [f64; 3],
+        stop: &Stop,
+    ) -> Result<BlockPart> {
+        let shape: [usize; 3] = mask.dim().into();
+        for d in 0..3 {
+            let [lo, hi] = core[d];
+            let end = origin[d] + hi as i64;
+            if lo >= hi || hi > shape[d] || origin[d] < 0 || end > volume[d] as i64 {
+                return Err(Error::InvalidMask(format!(
+                    "block core {core:?} at origin {origin:?} does not fit the block {shape:?} in the volume {volume:?}"
+                )));
+            }
+        }
+        let in_core = |v: [usize; 3]| (0..3).all(|d| core[d][0] <= v[d] && v[d] < core[d][1]);
+        if !mask.indexed_iter().any(|((i, j, k), m)| m.is_set() && in_core([i, j, k])) {
+            return Ok(BlockPart::default());
+        }
+        let (skeleton, fate) = self.run_tracked(mask, origin, spacing, stop, &mut |_| true, true)?;
+        let fate = fate.ok_or_else(|| Error::Internal("a tracked run lost its voxels".into()))?;
+        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+
+        // Core voxels: (component, cell, node position, radius), in C order.
+        let mut voxels: Vec<(u32, [i64; 3], usize, [usize; 3])> = vec![];
+        let mut node_of_voxel = 0usize;
+        for ((i, j, k), m) in mask.indexed_iter() {
+            if !m.is_set() {
+                continue;
+            }
+            if in_core([i, j, k]) {
+                let node = fate.node[node_of_voxel] as usize;
+                let cell = cell_of(&skeleton.positions[node], c)?;
+                voxels.push((fate.component[node_of_voxel], cell, node_of_voxel, [i, j, k]));
+            }
+            node_of_voxel += 1;
+        }
+        // Cells in (component, cell) order; the record of every core voxel.
+        let mut order: Vec<usize> = (0..voxels.len()).collect();
+        order.sort_by_key(|&v| (voxels[v].0, voxels[v].1, v));
+        let mut cells: Vec<CellSum> = vec![];
+        let mut record = vec![u32::MAX; fate.node.len()];
+        for &v in &order {
+            let (component, cell, id, _) = voxels[v];
+            let node = fate.node[id] as usize;
+            let p = skeleton.positions[node];
+            if cells.last().is_none_or(|s| (s.component, s.cell) != (component, cell)) {
+                cells.push(CellSum { component, cell, sum: [0.0; 3], count: 0, radius: 0.0 });
+            }
+            let s = cells.last_mut().expect("pushed above");
+            for d in 0..3 {
+                s.sum[d] += p[d];
+            }
+            s.count += 1;
+            s.radius = s.radius.max(skeleton.radii[node]);
+            record[id] = (cells.len() - 1) as u32;
+        }
+
+        // Grid edges between core voxels, as cell pairs.
+        let mut edges = vec![];
+        for (id, &a) in record.iter().enumerate() {
+            if a == u32::MAX {
+                continue;
+            }
+            for &w in fate.grid.neighbours(id) {
+                let b = record[w as usize];
+                if b != u32::MAX && a != b {
+                    edges.push([a.min(b), a.max(b)]);
+                }
+            }
+        }
+        let edges = sorted_pairs(edges);
+
+        // 26-neighbours among core voxels (bridge candidates), and the face voxels.
+        let local: HashMap<[usize; 3], u32> = voxels.iter().map(|&(_, _, id, v)| (v, record[id])).collect();
+        let forward = forward_offsets();
+        let mut bridges = vec![];
+        let mut faces = vec![];
+        for &(_, _, id, v) in &voxels {
+            let a = record[id];
+            for o in &forward {
+                let w: [i64; 3] = std::array::from_fn(|d| v[d] as i64 + o[d]);
+                if w.iter().any(|&x| x < 0) {
+                    continue;
+                }
+                if let Some(&b) = local.get(&w.map(|x| x as usize)) {
+                    if a != b && edges.binary_search(&[a.min(b), a.max(b)]).is_err() {
+                        bridges.push([a.min(b), a.max(b)]);
+                    }
+                }
+            }
+            let on_face = (0..3).any(|d| {
+                let g = origin[d] + v[d] as i64;
+                (v[d] == core[d][0] && g > 0) || (v[d] + 1 == core[d][1] && g + 1 < volume[d] as i64)
+            });
+            if on_face {
+                let g: [u64; 3] = std::array::from_fn(|d| (origin[d] + v[d] as i64) as u64);
+                faces.push(((g[0] * volume[1] as u64 + g[1]) * volume[2] as u64 + g[2], a));
+            }
+        }
+        faces.sort_unstable();
+        Ok(BlockPart { cells, edges, bridges: sorted_pairs(bridges), faces })
+    }
+
+    /// The merge phase of a chunked run (module doc): the graph of all blocks' parts,
+    /// given in a fixed block order, for a volume of shape `volume`.
+    pub fn merge_blocks(&self, parts: &[BlockPart], volume: [usize; 3], spacing: [f64; 3]) -> Result<Skeleton> {
+        crate::volume::check_spacing(spacing)?;
+        let p = self.params();
+        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        // Global record ids: blocks in order, records in order.
+        let mut first = vec![0usize];
+        for part in parts {
+            first.push(first[first.len() - 1] + part.cells.len());
+        }
+        let records = first[parts.len()];
+        let block_of: Vec<usize> =
+            (0..parts.len()).flat_map(|b| std::iter::repeat_n(b, parts[b].cells.len())).collect();
+        let rec = |b: usize, r: u32| -> Result<usize> {
+            let r = r as usize;
+            if r >= parts[b].cells.len() {
+                return Err(Error::InvalidMask(format!("block {b} refers to cell record {r} it does not hold")));
+            }
+            Ok(first[b] + r)
+        };
+
+        // Seam pairs between face voxels of different blocks.
+        let mut face: HashMap<u64, usize> = HashMap::new();
+        for (b, part) in parts.iter().enumerate() {
+            for &(v, r) in &part.faces {
+                if face.insert(v, rec(b, r)?).is_some() {
+                    return Err(Error::InvalidMask(format!("voxel {v} lies in the core of two blocks")));
+                }
+            }
+        }
+        let [n0, n1, n2] = volume.map(|n| n as i64);
+        let mut seam_edges = vec![];
+        let mut seam_bridges = vec![];
+        for part in parts {
+            for &(v, _) in &part.faces {
+                let a = face[&v];
+                let at = [v as i64 / (n1 * n2), (v as i64 / n2) % n1, v as i64 % n2];
+                for o in forward_offsets() {
+                    let w: [i64; 3] = std::array::from_fn(|d| at[d] + o[d]);
+                    if w.iter().zip([n0, n1, n2]).any(|(&x, n)| x < 0 || x >= n) {
+                        continue;
+                    }
+                    let Some(&b) = face.get(&(((w[0] * n1 + w[1]) * n2 + w[2]) as u64)) else { continue };
+                    if block_of[a] != block_of[b] {
+                        let pair = [a.min(b), a.max(b)];
+                        if is_edge_offset(o, p.connectivity) {
+                            seam_edges.push(pair);
+                        } else {
+                            seam_bridges.push(pair);
+                        }
+                    }
+                }
+            }
+        }
+
+        // Global mask components: a block's components, joined across seams.
+        let mut comp_first = vec![0usize];
+        for part in parts {
+            let n = part.cells.last().map_or(0, |s| s.component as usize + 1);
+            comp_first.push(comp_first[comp_first.len() - 1] + n);
+        }
+        let local_comp =
+            |r: usize| comp_first[block_of[r]] + parts[block_of[r]].cells[r - first[block_of[r]]].component as usize;
+        let mut uf = UnionFind::<usize>::new(comp_first[parts.len()]);
+        for pair in seam_edges.iter().chain(&seam_bridges) {
+            uf.union(local_comp(pair[0]), local_comp(pair[1]));
+        }
+        // Numbered by first record in block order.
+        let mut number: HashMap<usize, u32> = HashMap::new();
+        let global: Vec<u32> = (0..records)
+            .map(|r| {
+                let root = uf.find(local_comp(r));
+                let next = number.len() as u32;
+                *number.entry(root).or_insert(next)
+            })
+            .collect();
+        let components = number.len();
+
+        // Nodes: records grouped by (global component, cell), summed in record order.
+        let cell = |r: usize| parts[block_of[r]].cells[r - first[block_of[r]]].clone();
+        let mut order: Vec<usize> = (0..records).collect();
+        order.sort_by_key(|&r| (global[r], cell(r).cell, r));
+        let mut node_of = vec![0u32; records];
+        let mut positions: Vec<[f64; 3]> = vec![];
+        let mut counts: Vec<u64> = vec![];
+        let mut radii: Vec<f64> = vec![];
+        let mut component: Vec<u32> = vec![];
+        let mut blocks_of_node: Vec<(usize, bool)> = vec![];
+        let mut last: Option<(u32, [i64; 3])> = None;
+        for &r in &order {
+            let s = cell(r);
+            if last != Some((global[r], s.cell)) {
+                last = Some((global[r], s.cell));
+                positions.push([0.0; 3]);
+                counts.push(0);
+                radii.push(0.0);
+                component.push(global[r]);
+                blocks_of_node.push((block_of[r], false));
+            }
+            let k = positions.len() - 1;
+            for d in 0..3 {
+                positions[k][d] += s.sum[d];
+            }
+            counts[k] += s.count;
+            radii[k] = radii[k].max(s.radius);
+            if blocks_of_node[k].0 != block_of[r] {
+                blocks_of_node[k].1 = true;
+            }
+            node_of[r] = k as u32;
+        }
+        for (q, &n) in positions.iter_mut().zip(&counts) {
+            *q = q.map(|x| x / n as f64);
+        }
+        let nodes = positions.len();
+
+        // Edges: the blocks' and the seams'; then bridges where pieces stay apart.
+        let to_nodes = |pairs: &mut dyn Iterator<Item = [usize; 2]>| -> Vec<[u32; 2]> {
+            sorted_pairs(
+                pairs
+                    .map(|[a, b]| [node_of[a], node_of[b]])
+                    .filter(|[a, b]| a != b)
+                    .map(|[a, b]| [a.min(b), a.max(b)])
+                    .collect(),
+            )
+        };
+        let mut block_edges = vec![];
+        let mut block_bridges = vec![];
+        for (b, part) in parts.iter().enumerate() {
+            for e in &part.edges {
+                block_edges.push([rec(b, e[0])?, rec(b, e[1])?]);
+            }
+            for e in &part.bridges {
+                block_bridges.push([rec(b, e[0])?, rec(b, e[1])?]);
+            }
+        }
+        let mut seam = vec![false; nodes];
+        for (k, &(_, many)) in blocks_of_node.iter().enumerate() {
+            seam[k] = many;
+        }
+        let across = to_nodes(&mut seam_edges.iter().copied().chain(seam_bridges.iter().copied()));
+        for &[a, b] in &across {
+            seam[a as usize] = true;
+            seam[b as usize] = true;
+        }
+        let mut edges = to_nodes(&mut block_edges.into_iter().chain(seam_edges));
+        let mut pieces = UnionFind::<u32>::new(nodes);
+        for &[a, b] in &edges {
+            pieces.union(a, b);
+        }
+        for [a, b] in to_nodes(&mut block_bridges.into_iter().chain(seam_bridges)) {
+            if pieces.union(a, b) {
+                edges.push([a, b]);
+            }
+        }
+        let edges = sorted_pairs(edges);
+        let graph = Csr::from_sorted_edges(nodes, &edges.iter().map(|&[a, b]| (a, b)).collect::<Vec<_>>());
+        let mut g = NodeGraph { graph, positions, radii, component };
+
+        // Refinement of the short cycles the merge made. A cycle through a seam node is
+        // collapsed below `refine_area`; any other cycle only if it is too small to run
+        // round a hole as wide as its vessels (the area test of
+        // [`crate::inside::loop_of_the_mask`]; its blocks already judged it with the mask,
+        // and a cycle that small was made by regrouping their nodes into cells).
+        let max_area = p.refine_area * c * c;
+        for _ in 0..p.max_refine_iterations {
+            let kept = |cycle: &Cycle| {
+                let k = cycle.nodes.len() as f64;
+                let r = cycle.nodes.iter().map(|&i| g.radii[i as usize]).sum::<f64>() / k;
+                !cycle.nodes.iter().any(|&i| seam[i as usize]) && cycle.area >= std::f64::consts::PI * (2.0 * r).powi(2)
+            };
+            let Some((positions, moved, _)) = refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &kept)
+            else {
+                break;
+            };
+            g.positions = positions;
+            let keep: Vec<bool> = moved.iter().map(|m| !m).collect();
+            let (next, map) = decimate_mapped(&g, &keep, c)?;
+            let mut next_seam = vec![false; next.positions.len()];
+            for (i, &m) in map.iter().enumerate() {
+                next_seam[m as usize] |= seam[i];
+            }
+            seam = next_seam;
+            g = next;
+        }
+
+        // One-node spurs that seams made: a seam leaf on a junction, within the
+        // junction's radius (a vessel end there would reach further).
+        let degree: Vec<usize> = (0..g.positions.len()).map(|i| g.graph.neighbours(i).len()).collect();
+        let spur: Vec<bool> = (0..g.positions.len())
+            .map(|i| {
+                let [j] = g.graph.neighbours(i) else { return false };
+                let (a, b) = (g.positions[i], g.positions[*j as usize]);
+                let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+                seam[i] && degree[*j as usize] >= 3 && d <= g.radii[*j as usize]
+            })
+            .collect();
+        let mut new_id = vec![u32::MAX; spur.len()];
+        let mut kept = 0u32;
+        for (i, &s) in spur.iter().enumerate() {
+            if !s {
+                new_id[i] = kept;
+                kept += 1;
+            }
+        }
+        let edges = g
+            .graph
+            .edge_list()
+            .into_iter()
+            .filter(|&(a, b)| !spur[a as usize] && !spur[b as usize])
+            .map(|(a, b)| [new_id[a as usize] as usize, new_id[b as usize] as usize])
+            .collect();
+        let out = Skeleton {
+            edges,
+            positions: without(g.positions, &spur),
+            radii: without(g.radii, &spur),
+            spacing,
+            info: RunInfo {
+                foreground_voxels: counts.iter().sum::<u64>() as usize,
+                mask_components: components,
+                ..RunInfo::default()
+            },
+        };
+        check_skeleton(&out)?;
+        Ok(out)
+    }
+}

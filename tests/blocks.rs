@@ -1,0 +1,101 @@
+//! Chunked runs (`vesselflow::blocks`): the blocks of a volume, each with a halo, merged
+//! into one graph, compared with the single run of the whole volume.
+
+use ndarray::{s, Array3};
+use vesselflow::blocks::BlockPart;
+use vesselflow::{shapes, Params, Skeleton, Skeletonizer, Stop};
+
+/// Run `mask` in blocks of `core` voxels with `halo` voxels around, merged.
+fn chunked(mask: &Array3<u8>, core: usize, halo: usize, spacing: [f64; 3]) -> (Skeleton, Vec<BlockPart>) {
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    let volume: [usize; 3] = mask.dim().into();
+    let mut parts = vec![];
+    for i in (0..volume[0]).step_by(core) {
+        for j in (0..volume[1]).step_by(core) {
+            for k in (0..volume[2]).step_by(core) {
+                let at = [i, j, k];
+                let lo: [usize; 3] = std::array::from_fn(|d| at[d].saturating_sub(halo));
+                let hi: [usize; 3] = std::array::from_fn(|d| (at[d] + core + halo).min(volume[d]));
+                let end: [usize; 3] = std::array::from_fn(|d| (at[d] + core).min(volume[d]));
+                let block = mask.slice(s![lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]]);
+                let cores = std::array::from_fn(|d| [at[d] - lo[d], end[d] - lo[d]]);
+                let origin = lo.map(|x| x as i64);
+                parts.push(sk.contract_block(block, origin, cores, volume, spacing, &Stop::new()).unwrap());
+            }
+        }
+    }
+    (sk.merge_blocks(&parts, volume, spacing).unwrap(), parts)
+}
+
+fn single(mask: &Array3<u8>, spacing: [f64; 3]) -> Skeleton {
+    Skeletonizer::new(Params::default()).unwrap().run(mask.view(), spacing, &mut |_| true).unwrap()
+}
+
+/// Connected components and cycle rank (edges - nodes + components).
+fn topology(s: &Skeleton) -> (usize, usize) {
+    let mut uf = petgraph::unionfind::UnionFind::<usize>::new(s.len());
+    for &[a, b] in &s.edges {
+        uf.union(a, b);
+    }
+    let comps = (0..s.len()).filter(|&i| uf.find(i) == i).count();
+    (comps, s.edges.len() + comps - s.len())
+}
+
+#[test]
+fn a_tube_across_blocks_is_one_path_like_the_single_run() {
+    let mask = shapes::cylinder([64, 21, 21], 4.0);
+    let (g, parts) = chunked(&mask, 16, 16, [1.0; 3]);
+    let one = single(&mask, [1.0; 3]);
+    assert_eq!(topology(&g), (1, 0));
+    assert_eq!(topology(&g), topology(&one));
+    assert!(g.degrees().iter().all(|&d| d <= 2));
+    // Nodes along the whole axis, as many as the single run's within a few.
+    assert!((g.len() as i64 - one.len() as i64).abs() <= 6, "{} vs {}", g.len(), one.len());
+    assert_eq!(parts.len(), 4 * 2 * 2);
+    // Every foreground voxel is in exactly one core.
+    assert_eq!(g.info.foreground_voxels, mask.iter().filter(|&&m| m != 0).count());
+}
+
+#[test]
+fn a_torus_and_a_y_keep_their_cycle_and_their_junction() {
+    let torus = shapes::torus([24, 64, 64], 20.0, 4.0);
+    let (g, _) = chunked(&torus, 32, 24, [1.0; 3]);
+    assert_eq!(topology(&g), (1, 1));
+    let (y, _) = shapes::y_bifurcation([64, 48, 48], 3.0);
+    let (g, _) = chunked(&y, 24, 24, [1.0; 3]);
+    assert_eq!(topology(&g), topology(&single(&y, [1.0; 3])));
+    assert!(g.degrees().iter().any(|&d| d >= 3));
+}
+
+#[test]
+fn the_merge_is_the_same_whatever_the_order_of_the_work() {
+    // The parts are pure functions of their block: computing them twice, in another
+    // order, gives the same merge bit for bit.
+    let mask = shapes::torus([24, 64, 64], 20.0, 4.0);
+    let (a, parts) = chunked(&mask, 32, 16, [1.0; 3]);
+    let (b, again) = chunked(&mask, 32, 16, [1.0; 3]);
+    assert_eq!(parts, again);
+    assert_eq!(a.positions, b.positions);
+    assert_eq!(a.edges, b.edges);
+    assert_eq!(a.radii, b.radii);
+}
+
+#[test]
+fn separate_vessels_stay_separate_and_an_empty_block_adds_nothing() {
+    let mut mask = Array3::<u8>::zeros((48, 48, 48));
+    mask.slice_mut(s![.., 10..14, 10..14]).fill(1);
+    mask.slice_mut(s![.., 30..34, 30..34]).fill(1);
+    let (g, parts) = chunked(&mask, 24, 12, [1.0; 3]);
+    assert_eq!(topology(&g).0, 2);
+    assert_eq!(g.info.mask_components, 2);
+    // The blocks the tubes miss report nothing.
+    assert!(parts.iter().any(|p| *p == BlockPart::default()));
+}
+
+#[test]
+fn bad_cores_are_refused_before_any_work() {
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    let mask = Array3::<u8>::ones((8, 8, 8));
+    let e = sk.contract_block(mask.view(), [0; 3], [[0, 9], [0, 8], [0, 8]], [8; 3], [1.0; 3], &Stop::new());
+    assert!(e.unwrap_err().to_string().contains("does not fit"));
+}

@@ -1,0 +1,181 @@
+"""Chunked runs on a Dask LocalCluster (2 single-threaded worker processes):
+``vesselflow.distributed.skeletonize`` against the single run of the whole volume."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import networkx as nx
+import numpy as np
+import pytest
+
+import vesselflow
+from vesselflow import distributed as vd
+from vesselflow.metrics import netmets
+
+dask_distributed = pytest.importorskip("distributed", reason="needs the dask extra")
+pytest.importorskip("zarr", reason="needs the dask extra")
+
+
+@pytest.fixture(scope="module")
+def client() -> Any:
+    cluster = dask_distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    )
+    with dask_distributed.Client(cluster) as c:
+        yield c
+    cluster.close()
+
+
+def _ball_line(shape: tuple[int, int, int], a: Any, b: Any, r: float) -> np.ndarray:
+    """Voxels within ``r`` of the segment ``a``-``b``."""
+    idx = np.indices(shape).reshape(3, -1).T.astype(float)
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    t = np.clip((idx - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+    d = np.linalg.norm(idx - (a + t[:, None] * (b - a)), axis=1)
+    return (d <= r).reshape(shape)
+
+
+def _tube(shape: tuple[int, int, int] = (64, 64, 64), r: float = 3.0) -> np.ndarray:
+    # A diagonal tube: it crosses block faces, edges and the corner of 8 blocks.
+    return _ball_line(shape, (2, 2, 2), [n - 3 for n in shape], r)
+
+
+def _y() -> np.ndarray:
+    shape = (64, 64, 48)
+    c = (32, 32, 24)  # the fork sits on the corner of 8 blocks of 32
+    m = _ball_line(shape, (2, 32, 24), c, 3.0)
+    m |= _ball_line(shape, c, (61, 8, 24), 2.5)
+    m |= _ball_line(shape, c, (61, 56, 24), 2.5)
+    return m
+
+
+def _torus(shape: tuple[int, int, int] = (24, 72, 72)) -> np.ndarray:
+    i, j, k = np.indices(shape).astype(float)
+    i, j, k = i - 11.5, j - 35.5, k - 35.5
+    ring = np.hypot(j, k) - 24
+    return ring**2 + i**2 <= 16
+
+
+def _topology(g: vesselflow.VesselGraph) -> tuple[int, int]:
+    """Components and cycle rank."""
+    nxg = g.to_networkx()
+    comps = nx.number_connected_components(nxg)
+    return comps, nxg.number_of_edges() - nxg.number_of_nodes() + comps
+
+
+def _run(mask: np.ndarray, client: Any, **kw: Any) -> vesselflow.VesselGraph:
+    kw.setdefault("chunks", 32)
+    return vd.skeletonize(mask, client=client, **kw)
+
+
+@pytest.mark.parametrize("make", [_tube, _y, _torus], ids=["tube", "y", "torus"])
+def test_shapes_across_faces_and_corners_match_the_single_run(make: Any, client: Any) -> None:
+    mask = make()
+    g = _run(mask, client)
+    one = vesselflow.skeletonize(mask)
+    assert _topology(g) == _topology(one)
+    assert g.info["blocks_computed"] >= 4
+    # The same centrelines within a voxel (NetMets geometry rates at sigma = 1).
+    rates = netmets(one, g, 1.0)
+    assert rates["gfnr"] <= 0.02
+    assert rates["gfpr"] <= 0.02
+    assert abs(g.n_nodes - one.n_nodes) <= 0.15 * one.n_nodes
+    # Every foreground voxel owned by exactly one block.
+    assert g.info["foreground_voxels"] == int(mask.sum())
+
+
+def test_a_vessel_on_a_seam_and_separate_vessels(client: Any) -> None:
+    mask = np.zeros((64, 64, 64), bool)
+    mask[:, 30:34, 30:34] = True  # axis on the seam between blocks 0 and 1 (at 32)
+    mask[:, 5:9, 50:54] = True  # a second vessel, never touching the first
+    g = _run(mask, client)
+    assert _topology(g) == (2, 0)
+    assert g.info["mask_components"] == 2
+    assert np.all(g.degrees() <= 2)
+    # The seam vessel's nodes lie on its axis (31.5, 31.5).
+    on_seam = g.positions[np.abs(g.positions[:, 2] - 31.5) < 4]
+    assert np.abs(on_seam[:, 1] - 31.5).max() < 1.0
+
+
+def test_empty_blocks_are_skipped_and_a_full_block_is_run(client: Any) -> None:
+    shape = (64, 64, 48)
+    mask = _ball_line(shape, (24, 24, 0), (24, 24, 47), 12)  # a thick vessel along axis 2
+    assert mask[16:32, 16:32, :].all()  # blocks of 16 that are all foreground
+    g = _run(mask, client, chunks=16)
+    occupied = sum(
+        bool(mask[i : i + 16, j : j + 16, k : k + 16].any())
+        for i in range(0, 64, 16)
+        for j in range(0, 64, 16)
+        for k in range(0, 48, 16)
+    )
+    assert occupied < 4 * 4 * 3
+    assert g.info["blocks_empty"] == 4 * 4 * 3 - occupied
+    assert g.info["blocks_computed"] == occupied
+    # The halo follows the vessels: 3 x the largest radius a chunk of 16 sees (8).
+    assert g.info["halo"] == 3 * 8 > vd.REACH
+    assert _topology(g) == (1, 0)
+    # The centreline runs along the axis of the vessel.
+    assert np.abs(g.positions[:, :2] - 24).max() < 1.5
+    assert _run(np.zeros((40, 40, 40), bool), client).n_nodes == 0
+
+
+def test_anisotropic_spacing(client: Any) -> None:
+    mask = _tube((48, 64, 64), 3.0)
+    spacing = (2.0, 1.0, 1.0)
+    g = _run(mask, client, spacing=spacing)
+    one = vesselflow.skeletonize(mask, spacing)
+    assert _topology(g) == _topology(one) == (1, 0)
+    assert np.allclose(g.spacing, spacing)
+    extent = np.ptp(g.positions, axis=0)
+    assert extent[0] > 1.5 * 40  # physical units: axis 0 is stretched
+
+
+def test_deterministic_for_one_and_two_workers_and_resumes(client: Any, tmp_path: Path) -> None:
+    mask = _torus()
+    a = _run(mask, client, workdir=tmp_path / "w")
+    with (
+        dask_distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as one_cluster,
+        dask_distributed.Client(one_cluster) as one_client,
+    ):
+        b = _run(mask, one_client)
+    for x, y in [(a.positions, b.positions), (a.radii, b.radii), (a.edges, b.edges)]:
+        assert np.array_equal(x, y)
+    # Resume: remove two blocks' parts; only those are computed again.
+    parts = sorted((tmp_path / "w" / "blocks").glob("*.npz"))
+    for p in parts[:2]:
+        p.unlink()
+    c = _run(mask, client, workdir=tmp_path / "w")
+    assert (c.info["blocks_computed"], c.info["blocks_reused"]) == (2, len(parts) - 2)
+    assert np.array_equal(a.positions, c.positions)
+    # Another set-up in the same workdir is refused.
+    with pytest.raises(ValueError, match="another run"):
+        _run(mask, client, workdir=tmp_path / "w", chunks=24)
+
+
+def test_bad_parameters_are_refused_before_work(client: Any) -> None:
+    with pytest.raises(TypeError):
+        _run(np.zeros((8, 8, 8), bool), client, no_such_parameter=1)
+    with pytest.raises(ValueError, match="chunks"):
+        _run(np.zeros((8, 8, 8), bool), client, chunks=0)
+    with pytest.raises(ValueError, match="halo"):
+        _run(np.zeros((8, 8, 8), bool), client, halo=-1)
+
+
+def test_command_line_on_a_scheduler(client: Any, tmp_path: Path) -> None:
+    zarr = pytest.importorskip("zarr")
+    mask = _tube((48, 48, 48))
+    z = zarr.open_array(str(tmp_path / "m.zarr"), mode="w", shape=mask.shape, dtype=bool)
+    z[...] = mask
+    out = tmp_path / "g.npz"
+    argv = [str(tmp_path / "m.zarr"), "-o", str(out), "--chunks", "24"]
+    assert vd.main([*argv, "--scheduler", client.scheduler.address]) == 0
+    g = vesselflow.load_graph(out)
+    assert _topology(g) == (1, 0)
+    assert np.array_equal(g.positions, _run(mask, client, chunks=24).positions)
+    bad = [str(tmp_path / "m.zarr"), "-o", str(tmp_path / "h.npz"), "--param", "nope=1"]
+    assert vd.main(bad) == 2
+    assert not (tmp_path / "h.npz").exists()
