@@ -1,6 +1,6 @@
 //! Short cycles of a fundamental cycle basis: the convergence measure of the
-//! contraction (METHOD.md §2.6, paper §III-C) and the refinement that collapses
-//! small polygons (METHOD.md §3, paper §III-G, eqs. 10–11).
+//! contraction (docs/method.md §2.6, paper §III-C) and the refinement that collapses
+//! small polygons (docs/method.md §3, paper §III-G, eqs. 10–11).
 //!
 //! One cycle per edge outside a breadth-first spanning forest (roots: the lowest
 //! node of each component; neighbours in CSR order), so there are as many as the

@@ -1,4 +1,4 @@
-//! Vessel ends (output stage, with `anchor_ends`; not in METHOD.md).
+//! Vessel ends (output stage, with `anchor_ends`; not in the paper).
 //!
 //! Laplacian flow shortens every free end: before an end becomes a degree-1 node
 //! (and is anchored), the rounded cap of its vessel contracts inward. Where a vessel

@@ -1,4 +1,4 @@
-//! The output graph (METHOD.md §4): dense centreline nodes with radii, and the
+//! The output graph (docs/method.md §4): dense centreline nodes with radii, and the
 //! record of the run that made them.
 
 /// One stage's wall time.

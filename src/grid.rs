@@ -1,5 +1,5 @@
 //! The geometric graph in compact CSR form, and the initial grid graph built from
-//! the mask (METHOD.md §1, paper §III-A): one node per foreground voxel, edges to
+//! the mask (docs/method.md §1, paper §III-A): one node per foreground voxel, edges to
 //! face neighbours (or 18/26), thin-vessel reconnection, and a final bridge so that
 //! every 26-connected mask component is exactly one graph component.
 
@@ -237,7 +237,7 @@ fn offsets(max_sq: isize) -> Vec<[isize; 3]> {
     v
 }
 
-/// Build the initial grid graph of `mask` (METHOD.md §1).
+/// Build the initial grid graph of `mask` (docs/method.md §1).
 ///
 /// Edges join face neighbours (`connectivity = 6`; 18 or 26 on request). With
 /// `reconnect_thin`, every node of degree ≤ 2 is also joined to all foreground voxels

@@ -1,4 +1,4 @@
-//! l2-norm and medial Laplacians and adaptive anchoring (METHOD.md §2.1–2.3,
+//! l2-norm and medial Laplacians and adaptive anchoring (docs/method.md §2.1–2.3,
 //! paper §III-B eqs. 2–4 and §III-D eq. 9).
 //!
 //! A Laplacian `L = W - I` is stored as its off-diagonal weights, one per CSR
@@ -63,7 +63,7 @@ pub fn medial(g: &Csr, radii: &[f64], kind: MedialWeight) -> Laplacian {
     }
 }
 
-/// Skeleton-like nodes (METHOD.md §2.3): degree > 1 and every neighbour direction
+/// Skeleton-like nodes (docs/method.md §2.3): degree > 1 and every neighbour direction
 /// collinear with the direction to the first neighbour within `skeletal_angle`
 /// degrees. Two further conditions make the test mean "a node of a curve":
 /// neighbours lie on both sides (some pair is antiparallel, so a fan of neighbours

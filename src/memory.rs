@@ -1,5 +1,5 @@
 //! The run's peak memory, estimated from the mask before any heavy stage, and the
-//! `max_memory` guard (not in METHOD.md).
+//! `max_memory` guard (not in the paper).
 //!
 //! # The model
 //!

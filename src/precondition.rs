@@ -1,5 +1,5 @@
 //! The assembled normal matrix of eq. 8 and its block symmetric Gauss–Seidel
-//! preconditioner, used by the contraction solve (METHOD.md §2.4).
+//! preconditioner, used by the contraction solve (docs/method.md §2.4).
 //!
 //! `M = alpha² LnᵀLn + beta² LmᵀLm + Wg²` couples nodes up to two hops apart (about
 //! 21 entries per row on a 6-connected grid, of which about 11.4 are stored: each

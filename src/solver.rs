@@ -1,7 +1,7 @@
 //! The contraction step: the least-squares solution of eq. 8,
 //! `[alpha Ln; beta Lm; Wg] P' = [0; 0; Wg P]`, through its normal equations
 //! `M P' = Wg² P` with `M = alpha² LnᵀLn + beta² LmᵀLm + Wg²` (symmetric positive
-//! definite), by preconditioned conjugate gradients (METHOD.md §2.4).
+//! definite), by preconditioned conjugate gradients (docs/method.md §2.4).
 //!
 //! Choices:
 //! - the unknown is the displacement `D = P' - P`, so the right-hand side

@@ -1,5 +1,5 @@
 //! Mask views, spacing checks, and the anisotropic exact Euclidean distance
-//! transform (METHOD.md §1).
+//! transform (docs/method.md §1).
 
 /// A mask voxel type: `bool` or an integer; non-zero means vessel.
 pub trait Voxel: Copy + Send + Sync {
@@ -90,7 +90,7 @@ fn row_parts<'a, V>(mut values: &'a mut [V], starts: &[usize]) -> Vec<&'a mut [V
 ///
 /// The value of a foreground voxel is the squared distance from its centre to the
 /// nearest background voxel centre; voxels outside the array count as background
-/// (METHOD.md §1), so every value is finite and ≥ `min(spacing)²`.
+/// (docs/method.md §1), so every value is finite and ≥ `min(spacing)²`.
 ///
 /// Exact and linear-time: a binary scan along axis 0 (forward, then backward, plane
 /// by plane, each plane's rows in parallel), then, plane by plane (planes in

@@ -6,7 +6,11 @@
 
 The method is Damseh et al., "Laplacian Flow Dynamics on Geometric Graphs for
 Anatomical Modeling of Cerebrovascular Networks"; the work is done by a Rust core
-(``vesselflow._core``) with the GIL released.
+(``vesselflow._core``) with the GIL released. The documentation (``docs/`` in the source
+repository) has a tutorial, the method with its departures from the paper and a guide
+to the parameters.
+
+A file that cannot be used as a mask raises :class:`VolumeError`, a ``ValueError``.
 """
 
 from vesselflow._core import __version__

@@ -15,8 +15,11 @@ __all__ = [
     "__version__",
     "binarise",
     "cli_main",
+    "contract_block",
     "memory_estimate",
+    "merge_blocks",
     "param_defaults",
+    "to_frame",
     "usable_memory",
     "write_graph",
 ]
@@ -70,5 +73,31 @@ def write_graph(
 ) -> None:
     """Write a graph atomically; the extension of ``path`` picks the format."""
 
+def to_frame(
+    positions: NDArray[np.float64],
+    spacing: Sequence[float],
+    coordinates: str,
+    affine: NDArray[np.float64] | None = None,
+) -> tuple[NDArray[np.float64], tuple[float, float, float], str | None]:
+    """Positions in the frame ``coordinates``, the spacing to store, and a warning."""
+
 def cli_main(argv: list[str]) -> int:
     """Run the ``vesselflow`` command line with ``argv`` (``argv[0]`` is the program name)."""
+
+def contract_block(
+    skeletonizer: Skeletonizer,
+    mask: NDArray[np.uint8],
+    origin: Sequence[int],
+    core: Sequence[Sequence[int]],
+    volume: Sequence[int],
+    spacing: Sequence[float],
+) -> dict[str, NDArray[Any]]:
+    """The block phase of a chunked run: a block part as a dict of arrays."""
+
+def merge_blocks(
+    skeletonizer: Skeletonizer,
+    parts: list[dict[str, NDArray[Any]]],
+    volume: Sequence[int],
+    spacing: Sequence[float],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], dict[str, Any]]:
+    """The merge phase of a chunked run: the graph of the block parts."""

@@ -31,13 +31,64 @@ ENDPOINT_ENDPOINT, JUNCTION_ENDPOINT, JUNCTION_JUNCTION, ISOLATED_CYCLE = 0, 1, 
 
 
 @dataclass(frozen=True)
-class _Branch:
-    nodes: list[int]  # node ids from src to dst; first == last for cycles
-    edges: list[int]  # edge row ids, edges[i] joins nodes[i] and nodes[i + 1]
+class Branch:
+    """One branch of a graph, as :func:`trace_branches` finds it.
+
+    Attributes
+    ----------
+    nodes : list of int
+        Node ids from one end to the other; the first repeats at the end for an
+        isolated cycle.
+    edges : list of int
+        Rows of ``graph.edges``: ``edges[i]`` joins ``nodes[i]`` and ``nodes[i + 1]``.
+    branch_type : int
+        skan's code: 0 endpoint-endpoint, 1 junction-endpoint, 2 junction-junction,
+        3 isolated cycle.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph
+    >>> from vesselflow.analysis import trace_branches
+    >>> ring = VesselGraph([[0, 0, 0], [0, 0, 1], [0, 1, 1]], [1, 1, 1], [[0, 1], [1, 2], [2, 0]])
+    >>> trace_branches(ring)
+    [Branch(nodes=[0, 1, 2, 0], edges=[0, 1, 2], branch_type=3)]
+    """
+
+    nodes: list[int]
+    edges: list[int]
     branch_type: int
 
 
-def _trace(n_nodes: int, edges: NDArray[np.int64]) -> list[_Branch]:
+def trace_branches(graph: VesselGraph) -> list[Branch]:
+    """Split a graph into its branches (see the module docstring), without the table.
+
+    The node paths behind :func:`branches` and :func:`junctions`, for code that needs
+    only the topology (e.g. :mod:`vesselflow.metrics`).
+
+    Parameters
+    ----------
+    graph : VesselGraph
+        Any graph; nodes without edges belong to no branch.
+
+    Returns
+    -------
+    list of Branch
+        In the row order of :func:`branches`: first the branches that start at a node
+        of degree != 2 (by node id, then edge order), then the isolated cycles.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph
+    >>> from vesselflow.analysis import trace_branches
+    >>> star = VesselGraph([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [2, 0, 0]],
+    ...                    [1, 1, 1, 1, 1], [[0, 1], [0, 2], [0, 3], [1, 4]])
+    >>> [(b.nodes, b.branch_type) for b in trace_branches(star)]
+    [([0, 1, 4], 1), ([0, 2], 1), ([0, 3], 1)]
+    """
+    return _trace(graph.n_nodes, graph.edges)
+
+
+def _trace(n_nodes: int, edges: NDArray[np.int64]) -> list[Branch]:
     """Split the graph into branches, walking from every node of degree != 2 along each
     unused edge until the next such node, then around what is left (isolated cycles)."""
     degree = np.bincount(edges.ravel(), minlength=n_nodes).tolist()
@@ -70,15 +121,15 @@ def _trace(n_nodes: int, edges: NDArray[np.int64]) -> list[_Branch]:
             if not used[step[1]]:
                 nodes, path_edges = walk(start, step, stop_at_start=False)
                 kind = int(degree[nodes[0]] > 2) + int(degree[nodes[-1]] > 2)
-                branches.append(_Branch(nodes, path_edges, kind))
+                branches.append(Branch(nodes, path_edges, kind))
     for start in range(n_nodes):
         if degree[start] == 2 and not used[adjacency[start][0][1]]:
             nodes, path_edges = walk(start, adjacency[start][0], stop_at_start=True)
-            branches.append(_Branch(nodes, path_edges, ISOLATED_CYCLE))
+            branches.append(Branch(nodes, path_edges, ISOLATED_CYCLE))
     return branches
 
 
-def _components(branches: list[_Branch]) -> list[int]:
+def _components(branches: list[Branch]) -> list[int]:
     """Connected component of every branch, numbered in order of first appearance."""
     joined = DisjointSet(n for b in branches for n in (b.nodes[0], b.nodes[-1]))
     for b in branches:
@@ -88,7 +139,7 @@ def _components(branches: list[_Branch]) -> list[int]:
 
 
 def _segments(
-    graph: VesselGraph, branches: list[_Branch]
+    graph: VesselGraph, branches: list[Branch]
 ) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Every edge of every branch: (branch index, length, radius at start, radius at end)."""
     counts = [len(b.edges) for b in branches]
@@ -124,10 +175,36 @@ def branches(graph: VesselGraph) -> pd.DataFrame:
       (no end caps).
     - ``n-nodes``: distinct nodes on the branch, ends included.
     - ``nodes``: the node ids from src to dst (a list; cycles repeat src at the end).
+
+    Parameters
+    ----------
+    graph : VesselGraph
+        Positions and radii in physical units.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per branch, in :func:`trace_branches` order, with the columns above.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph
+    >>> from vesselflow.analysis import branches
+    >>> y = VesselGraph([[0, 0, 0], [0, 0, 4], [0, 3, 8], [0, -3, 8], [9, 9, 9], [9, 9, 9.5]],
+    ...                 [2, 2, 1, 1, 1, 1], [[0, 1], [1, 2], [1, 3], [4, 5]])
+    >>> table = branches(y)
+    >>> table[["skeleton-id", "branch-type", "branch-distance", "euclidean-distance"]]
+       skeleton-id  branch-type  branch-distance  euclidean-distance
+    0            0            1              4.0                 4.0
+    1            0            1              5.0                 5.0
+    2            0            1              5.0                 5.0
+    3            1            0              0.5                 0.5
+    >>> table.groupby("skeleton-id")["branch-distance"].sum().tolist()  # length per tree
+    [14.0, 0.5]
     """
     import pandas as pd
 
-    traced = _trace(graph.n_nodes, graph.edges)
+    traced = trace_branches(graph)
     n = len(traced)
     owner, length, r1, r2 = _segments(graph, traced)
     src = np.array([b.nodes[0] for b in traced], dtype=np.intp)
@@ -206,10 +283,32 @@ def junctions(graph: VesselGraph) -> pd.DataFrame:
     node along the branch that is at least one junction radius away (the vessel's
     course outside the junction's own sphere), or to the branch's far end if no
     node is that far.
+
+    Parameters
+    ----------
+    graph : VesselGraph
+        Positions and radii in physical units.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per junction with the columns above.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph
+    >>> from vesselflow.analysis import junctions
+    >>> y = VesselGraph([[0, 0, 0], [0, 0, 4], [0, 3, 8], [0, -3, 8]], [2, 1, 1, 1],
+    ...                 [[0, 1], [1, 2], [1, 3]])
+    >>> row = junctions(y).iloc[0]
+    >>> int(row["node-id"]), int(row["degree"]), row["branches"]
+    (1, 3, [0, 1, 2])
+    >>> [round(a, 1) for a in row["angles"]]  # trunk-left, trunk-right, left-right
+    [143.1, 143.1, 73.7]
     """
     import pandas as pd
 
-    traced = _trace(graph.n_nodes, graph.edges)
+    traced = trace_branches(graph)
     degree = graph.degrees()
     ends: dict[int, list[tuple[int, NDArray[np.float64]]]] = {}
     for row, b in enumerate(traced):
@@ -255,9 +354,30 @@ def prune(graph: VesselGraph, min_length_over_radius: float = 2.0) -> VesselGrap
     branches are never removed, and a junction left with degree 2 becomes an ordinary
     path node.
 
-    The result has dense node ids (the kept nodes in their old order), edges in
-    their old order, the same ``spacing`` and ``params``, and ``info`` extended
-    with ``pruned_branches`` (the count removed) and ``prune_min_length_over_radius``.
+    Parameters
+    ----------
+    graph : VesselGraph
+        The graph to prune; it is left alone.
+    min_length_over_radius : float
+        Finite and >= 0 (0 prunes nothing).
+
+    Returns
+    -------
+    VesselGraph
+        Dense node ids (the kept nodes in their old order), edges in their old order,
+        the same ``spacing`` and ``params``, and ``info`` extended with
+        ``pruned_branches`` (the count removed) and ``prune_min_length_over_radius``.
+
+    Examples
+    --------
+    >>> from vesselflow import VesselGraph
+    >>> from vesselflow.analysis import prune
+    >>> # a vessel along axis 2 (radius 2) with a 1-long bump at node 1
+    >>> bumpy = VesselGraph([[0, 0, 0], [0, 0, 5], [0, 0, 10], [0, 1, 5]], [2, 2, 2, 1],
+    ...                     [[0, 1], [1, 2], [1, 3]])
+    >>> clean = prune(bumpy, 2.0)
+    >>> clean.n_nodes, clean.edges.tolist(), clean.info["pruned_branches"]
+    (3, [[0, 1], [1, 2]], 1)
     """
     k = float(min_length_over_radius)
     if not (math.isfinite(k) and k >= 0):
@@ -271,7 +391,7 @@ def prune(graph: VesselGraph, min_length_over_radius: float = 2.0) -> VesselGrap
         degree = np.bincount(graph.edges[live].ravel(), minlength=graph.n_nodes)
         owner, length, _, _ = _segments(graph, traced)
         total = np.bincount(owner, weights=length, minlength=len(traced))
-        spurs: dict[int, list[tuple[float, _Branch]]] = {}
+        spurs: dict[int, list[tuple[float, Branch]]] = {}
         for b, branch_length in zip(traced, total.tolist()):
             if b.branch_type != JUNCTION_ENDPOINT:
                 continue

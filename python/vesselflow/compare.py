@@ -53,8 +53,8 @@ sampling=spacing)``, the distance from a vessel voxel centre to the nearest back
 centre, in physical units) read at the voxel nearest to each node, as the paper does for
 all its peers ("the intensity of the Euclidean distance transform at the coordinate of that
 node"). A node off the mask therefore gets radius 0. ``"vesselflow"`` keeps its own radii
-(the flow-transferred radii of the paper's section III-F, by default half a voxel less than
-this EDT), so radius errors of our method are those of the method, not of this helper.
+(see ``docs/method.md``), so radius errors of our method are those of the method, not of
+this helper.
 
 Timing. ``graph.info["seconds"]`` is the wall time from the mask to the graph's nodes and
 edges (surface extraction included for ``"mesh"`` and ``"pointcloud"``), without the shared
@@ -74,6 +74,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from vesselflow.graph import VesselGraph
+from vesselflow.skeletonizer import skeletonize
 
 METHODS: tuple[str, ...] = ("vesselflow", "voxel", "teasar", "mesh", "pointcloud")
 """Names accepted by :func:`run`, ours first."""
@@ -119,6 +120,12 @@ def available() -> dict[str, str | None]:
         ``{method: None}`` for every method whose packages import, else ``{method: reason}``
         naming the missing package, the import error and how to install it; in
         :data:`METHODS` order.
+
+    Examples
+    --------
+    >>> from vesselflow import compare
+    >>> compare.available()["vesselflow"] is None  # ours needs nothing more
+    True
     """
     return {method: _missing(method) for method in METHODS}
 
@@ -161,6 +168,17 @@ def run(
         A mask that is not bool or numeric, or an option the method does not take.
     ImportError
         The method's packages are missing; the message says which and how to install them.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from vesselflow import compare
+    >>> mask = np.zeros((40, 21, 21), bool)
+    >>> mask[:, 6:15, 6:15] = True
+    >>> graph = compare.run("vesselflow", mask, spacing=(1.0, 0.5, 0.5))
+    >>> graph.info["method"], graph.info["seconds"] > 0
+    ('vesselflow', True)
+    >>> compare.run("teasar", mask)  # doctest: +SKIP
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
@@ -213,6 +231,15 @@ def edt_radii(
         background; voxels beyond the array border do not count as background) at the voxel
         nearest each node: index ``rint(position / spacing)`` clipped into the array. This
         is the paper's radius mapping for its peers (section IV-A).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from vesselflow import compare
+    >>> mask = np.zeros((7, 7, 7), bool)
+    >>> mask[3, 3, 1:6] = True  # a one-voxel line
+    >>> compare.edt_radii(mask, [[3, 3, 3], [0, 0, 0]]).tolist()  # on it, and off the mask
+    [1.0, 0.0]
     """
     from scipy import ndimage
 
@@ -238,8 +265,6 @@ _Result = tuple[NDArray[np.float64], NDArray[np.int64], dict[str, Any]]
 def _run_vesselflow(
     volume: NDArray[np.bool_], sampling: NDArray[np.float64], options: Mapping[str, Any]
 ) -> VesselGraph:
-    from vesselflow.skeletonizer import skeletonize
-
     start = time.perf_counter()
     graph = skeletonize(volume, tuple(sampling.tolist()), **options)
     graph.info["seconds"] = time.perf_counter() - start

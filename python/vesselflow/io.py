@@ -1,32 +1,29 @@
-"""Graph files: reading every format :meth:`VesselGraph.save` writes, and writing the
-formats other tools read (SWC, VTK PolyData, CSV tables).
+"""Graph files in: reading every format :meth:`VesselGraph.save` writes.
 
-``.npz``, ``.json`` and ``.graphml`` are defined in the project's format contract and
-written by the Rust writer the ``vesselflow`` binary shares; ``.swc``, ``.vtp`` and
-``.csv`` are written here. In every format positions are physical units in array axis
-order (``x``, ``y``, ``z`` = axes 0, 1, 2) and radii are in the same units. Every writer
-is atomic: it writes a temporary file beside the target and renames it over the target
-once complete, so a failure never leaves a partial file.
+Every format is written by the Rust writers of ``vesselflow-io`` (the one registry of
+graph formats, shared with the ``vesselflow`` binary, reached through
+:func:`vesselflow._core.write_graph`); they are read back here, in Python, because the
+readers use the field's Python libraries (networkx for GraphML, VTK for ``.vtp``). In
+every format positions are physical units in the graph's coordinate frame (array axis
+order, ``x``, ``y``, ``z`` = axes 0, 1, 2, unless the run asked for ``coordinates=``)
+and radii are in the same units. ``.precomputed`` (Neuroglancer) folders are written,
+not read: Neuroglancer, cloud-volume and osteoid read them.
 """
 
 from __future__ import annotations
 
 import csv
 import errno
-import importlib
 import json
 import os
-import secrets
-import shutil
 import zipfile
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from pathlib import Path
-from types import ModuleType
 from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
+from vesselflow._util import import_extra
 from vesselflow.graph import VesselGraph, check_graph_arrays
 
 FORMAT = "vesselflow-graph"
@@ -47,7 +44,26 @@ def load_graph(path: str | os.PathLike[str]) -> VesselGraph:
     1, 1). A ``.swc`` file's nodes come back in the file's (breadth-first) order, with
     the loops listed in its ``# loop-edge`` lines restored; SWC files of other tools
     load too (their ids need not be contiguous). A ``.vtp`` file may hold polylines:
-    each segment is an edge.
+    each segment is an edge. ``.precomputed`` folders are written, not read.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The graph file.
+
+    Returns
+    -------
+    VesselGraph
+        The graph, with the spacing, run record and parameters its format keeps.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from vesselflow import VesselGraph
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "g.swc"
+    >>> VesselGraph([[0, 0, 0], [0, 0, 2]], [1.0, 0.5], [[0, 1]]).save(path)
+    >>> load_graph(path).edges.tolist()
+    [[0, 1]]
     """
     path = Path(path)
     reader = _READERS[graph_extension(path)]
@@ -199,150 +215,6 @@ def _node_id(text: str) -> int:
     return int(text)
 
 
-def import_extra(module: str, extra: str) -> ModuleType:
-    """Import an optional dependency; if it is missing, say which extra installs it."""
-    try:
-        return importlib.import_module(module)
-    except ModuleNotFoundError as e:
-        raise ModuleNotFoundError(
-            f"{module} is not installed; install it with: pip install vesselflow[{extra}]",
-            name=module,
-        ) from e
-
-
-TEMP_PREFIX, TEMP_SUFFIX = ".vesselflow-", ".tmp"
-"""Temporary files of an unfinished write are named ``.vesselflow-*.tmp``, as the Rust
-writer names them."""
-
-
-def _temp_beside(path: Path) -> Path:
-    return path.with_name(f"{TEMP_PREFIX}{secrets.token_hex(6)}{TEMP_SUFFIX}")
-
-
-@contextmanager
-def atomic_files(*paths: Path) -> Iterator[list[Path]]:
-    """One temporary path beside each of ``paths`` for the block to write; when the
-    block succeeds they replace ``paths`` together.
-
-    All or nothing: on any failure (an exception in the block, a failed rename,
-    ``KeyboardInterrupt``, the ``Terminated`` that the console script raises on
-    SIGTERM) the temporary files are removed, the files already replaced get their old
-    contents back and files that did not exist are not created.
-    """
-    temps = [_temp_beside(path) for path in paths]
-    try:
-        yield temps
-        _replace_all(temps, list(paths))
-    finally:
-        for temp in temps:
-            temp.unlink(missing_ok=True)
-
-
-@contextmanager
-def _atomic(path: Path) -> Iterator[Path]:
-    """:func:`atomic_files` for one file."""
-    with atomic_files(path) as (temp,):
-        yield temp
-
-
-def _replace_all(temps: list[Path], paths: list[Path]) -> None:
-    if len(paths) == 1:
-        os.replace(temps[0], paths[0])
-        return
-    # Keep the old files (a hard link, or a copy where links are not supported) until
-    # every new one is in place, so that a failure part-way can put them back. What is
-    # undone is read from the disk, not from variables, so an exception between any two
-    # steps (KeyboardInterrupt, SIGTERM) still undoes exactly what was done.
-    backups = [_temp_beside(path) for path in paths]
-    try:
-        for path, backup in zip(paths, backups):
-            _keep_old(path, backup)
-        for temp, path in zip(temps, paths):
-            os.replace(temp, path)
-    except BaseException:
-        for temp, path, backup in zip(temps, paths, backups):
-            if temp.exists():  # not moved into place: nothing to undo
-                continue
-            if backup.exists():
-                os.replace(backup, path)
-            else:
-                path.unlink(missing_ok=True)
-        raise
-    finally:
-        for backup in backups:
-            backup.unlink(missing_ok=True)
-
-
-def _keep_old(path: Path, backup: Path) -> None:
-    """Give the file at ``path``, if any, the second name ``backup``."""
-    if not os.path.lexists(path):
-        return
-    try:
-        os.link(path, backup, follow_symlinks=False)
-    except OSError:
-        shutil.copy2(path, backup, follow_symlinks=False)
-
-
-def _bfs_forest(graph: VesselGraph) -> tuple[list[int], list[int], list[int]]:
-    """Breadth-first spanning forest: nodes in visiting order, each node's parent (-1 for
-    a root) and the indices of the edges left out of the trees (loops, repeated edges).
-
-    Each connected component is rooted at its node of largest radius (lowest id on ties);
-    components come in the order of their roots' radii, largest first.
-    """
-    n = graph.n_nodes
-    ends = np.concatenate([graph.edges, graph.edges[:, ::-1]])
-    edge_ids = np.tile(np.arange(graph.n_edges), 2)
-    by_node = np.argsort(ends[:, 0], kind="stable")
-    starts = np.searchsorted(ends[by_node, 0], np.arange(n + 1)).tolist()
-    neighbours, via = ends[by_node, 1].tolist(), edge_ids[by_node].tolist()
-    parent = [-1] * n
-    visited = [False] * n
-    in_tree = [False] * graph.n_edges
-    order: list[int] = []
-    for root in np.lexsort((np.arange(n), -graph.radii)).tolist():
-        if visited[root]:
-            continue
-        visited[root] = True
-        head = len(order)
-        order.append(root)
-        while head < len(order):
-            node = order[head]
-            head += 1
-            for slot in range(starts[node], starts[node + 1]):
-                other = neighbours[slot]
-                if not visited[other]:
-                    visited[other] = True
-                    parent[other] = node
-                    in_tree[via[slot]] = True
-                    order.append(other)
-    loops = [e for e, tree in enumerate(in_tree) if not tree]
-    return order, parent, loops
-
-
-def _write_swc(graph: VesselGraph, path: Path) -> None:
-    order, parent, loops = _bfs_forest(graph)
-    swc_id = np.empty(graph.n_nodes, dtype=np.int64)
-    swc_id[order] = np.arange(1, graph.n_nodes + 1)
-    spacing = " ".join(repr(s) for s in graph.spacing.tolist())
-    lines = [
-        f"# {FORMAT} version {VERSION} (SWC)",
-        f"# spacing {spacing}",
-        "# columns: id type x y z radius parent; x y z = array axes 0 1 2, physical units",
-        "# one tree per connected component, rooted at its node of largest radius "
-        "(lowest id on ties), parents from a breadth-first search",
-        "# edges not in the trees (loops) are listed below as 'loop-edge id id'",
-    ]
-    lines += [f"# loop-edge {swc_id[a]} {swc_id[b]}" for a, b in graph.edges[loops].tolist()]
-    positions, radii = graph.positions.tolist(), graph.radii.tolist()
-    for i, node in enumerate(order, start=1):
-        x, y, z = positions[node]
-        up = -1 if parent[node] < 0 else swc_id[parent[node]]
-        lines.append(f"{i} 0 {x!r} {y!r} {z!r} {radii[node]!r} {up}")
-    with atomic_files(path) as (temp,):
-        temp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-
-
 def _read_swc(path: Path) -> _Parts:
     spacing: list[str] = ["1", "1", "1"]
     loop_ids: list[tuple[int, int]] = []
@@ -402,35 +274,6 @@ def _vtk() -> tuple[Any, Any, Any, Any]:
     )
 
 
-def _write_vtp(graph: VesselGraph, path: Path) -> None:
-    core, model, xml, numpy_vtk = _vtk()
-    points = core.vtkPoints()
-    points.SetData(numpy_vtk.numpy_to_vtk(np.ascontiguousarray(graph.positions), deep=True))
-    offsets = np.arange(0, 2 * graph.n_edges + 1, 2, dtype=np.int64)
-    lines = model.vtkCellArray()
-    lines.SetData(
-        numpy_vtk.numpy_to_vtkIdTypeArray(offsets, deep=True),
-        numpy_vtk.numpy_to_vtkIdTypeArray(graph.edges.reshape(-1).copy(), deep=True),
-    )
-    poly = model.vtkPolyData()
-    poly.SetPoints(points)
-    poly.SetLines(lines)
-    for data, name, values in (
-        (poly.GetPointData(), "radius", graph.radii),
-        (poly.GetFieldData(), "spacing", graph.spacing),
-    ):
-        array = numpy_vtk.numpy_to_vtk(np.ascontiguousarray(values), deep=True)
-        array.SetName(name)
-        data.AddArray(array)
-    poly.GetPointData().SetActiveScalars("radius")
-    with atomic_files(path) as (temp,):
-        writer = xml.vtkXMLPolyDataWriter()
-        writer.SetFileName(str(temp))
-        writer.SetInputData(poly)
-        if writer.Write() != 1:
-            raise OSError(f"{path}: VTK could not write the file")
-
-
 def _read_vtp(path: Path) -> _Parts:
     _, _, xml, numpy_vtk = _vtk()
     if not path.is_file():
@@ -465,22 +308,25 @@ def _read_vtp(path: Path) -> _Parts:
 
 
 def csv_edges_path(path: str | os.PathLike[str]) -> Path:
-    """The edges table written beside a nodes table: ``graph.csv`` -> ``graph.edges.csv``."""
+    """The edges table beside a nodes table, as the Rust writer names it.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The nodes table, ``name.csv``.
+
+    Returns
+    -------
+    pathlib.Path
+        ``name.edges.csv`` in the same folder.
+
+    Examples
+    --------
+    >>> csv_edges_path("out/graph.csv").as_posix()
+    'out/graph.edges.csv'
+    """
     path = Path(path)
     return path.with_name(f"{path.stem}.edges{path.suffix}")
-
-
-def _write_csv(graph: VesselGraph, path: Path) -> None:
-    with atomic_files(path, csv_edges_path(path)) as (nodes_temp, edges_temp):
-        with open(nodes_temp, "w", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f)
-            writer.writerow(["id", "x", "y", "z", "r"])
-            positions = graph.positions.tolist()
-            writer.writerows([i, *positions[i], r] for i, r in enumerate(graph.radii.tolist()))
-        with open(edges_temp, "w", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f)
-            writer.writerow(["source", "target"])
-            writer.writerows(graph.edges.tolist())
 
 
 def _read_csv(path: Path) -> _Parts:
@@ -526,10 +372,3 @@ _READERS: dict[str, Callable[[Path], _Parts]] = {
     ".swc": _read_swc,
     ".vtp": _read_vtp,
 }
-
-WRITERS: dict[str, Callable[[VesselGraph, Path], None]] = {
-    ".csv": _write_csv,
-    ".swc": _write_swc,
-    ".vtp": _write_vtp,
-}
-"""Writers of the formats :meth:`VesselGraph.save` does not hand to the Rust writer."""

@@ -17,13 +17,13 @@ import xml.etree.ElementTree as ElementTree
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import IO, Any, Callable
+from typing import IO, Any, Callable, Literal, overload
 
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
 from vesselflow import _core
-from vesselflow.io import import_extra
+from vesselflow._util import import_extra, spacing_argument
 
 Spacing = tuple[float, float, float]
 """Voxel size along array axes 0, 1, 2, in the file's physical units."""
@@ -115,6 +115,31 @@ def _available_memory() -> int | None:
     return _core.usable_memory()
 
 
+@overload
+def load_volume(
+    path: str | os.PathLike[str],
+    key: str | None = ...,
+    threshold: float | None = ...,
+    label: float | None = ...,
+    max_memory: int | None = ...,
+    spacing: Sequence[float] | float | None = ...,
+    return_affine: Literal[False] = ...,
+) -> tuple[NDArray[np.bool_], Spacing]: ...
+
+
+@overload
+def load_volume(
+    path: str | os.PathLike[str],
+    key: str | None = ...,
+    threshold: float | None = ...,
+    label: float | None = ...,
+    max_memory: int | None = ...,
+    spacing: Sequence[float] | float | None = ...,
+    *,
+    return_affine: Literal[True],
+) -> tuple[NDArray[np.bool_], Spacing, NDArray[np.float64]]: ...
+
+
 def load_volume(
     path: str | os.PathLike[str],
     key: str | None = None,
@@ -122,7 +147,8 @@ def load_volume(
     label: float | None = None,
     max_memory: int | None = None,
     spacing: Sequence[float] | float | None = None,
-) -> tuple[NDArray[np.bool_], Spacing]:
+    return_affine: bool = False,
+) -> tuple[NDArray[np.bool_], Spacing] | tuple[NDArray[np.bool_], Spacing, NDArray[np.float64]]:
     """Read a 3-D mask and its voxel spacing (physical units per voxel, axes 0, 1, 2).
 
     The extension picks the reader:
@@ -136,8 +162,8 @@ def load_volume(
         NIfTI through nibabel, with ``scl_slope``/``scl_inter`` applied. The array is
         returned in the axis order in which it is stored (voxel axes i, j, k) and the
         spacing is the header's zooms for those axes (``pixdim[1:4]``, usually mm). No
-        reorientation is applied: the affine (qform/sform) is ignored, so a graph's
-        positions are voxel index times spacing, not scanner coordinates.
+        reorientation is applied; the voxel-to-world affine (the sform, else the
+        qform, else the zooms) is returned with ``return_affine=True``.
     ``.tif``, ``.tiff``
         A (multi-page) TIFF stack through tifffile, axes ``(z, y, x)``. Spacing from
         ImageJ metadata (``spacing`` for z, the X/YResolution tags for x and y) or from
@@ -162,6 +188,14 @@ def load_volume(
     needs ``threshold`` (mask = data > threshold) or ``label`` (mask = data == label), in
     the data's own values; passing both is a ``ValueError``.
 
+    ``return_affine=True`` also returns the 4 x 4 voxel-to-world affine (array index
+    ``(i, j, k, 1)`` to world ``(x, y, z, 1)``), for ``skeletonize(...,
+    coordinates="world", affine=...)``: NIfTI's sform (``sform_code > 0``), else its
+    qform (``qform_code > 0``), else the zooms on the diagonal, as the ``vesselflow``
+    binary reads it; SimpleITK's origin, direction and spacing (LPS, columns in the
+    array's axis order); the diagonal of the spacing for the other formats (``.npy``,
+    ``.npz``, TIFF, HDF5, and Zarr, whose OME ``translation`` is not applied).
+
     ``spacing`` (3 numbers, or one for every axis) replaces the file's spacing; it is
     needed for a file whose spacing is not finite numbers > 0, which is an error.
 
@@ -175,11 +209,29 @@ def load_volume(
     :class:`VolumeError` (a ``ValueError``) naming the file if it cannot be read as a
     3-D volume of its format or is not binary, and ``MemoryError`` saying how much memory
     the volume needs and how much there is.
+
+    Returns
+    -------
+    mask : (I, J, K) bool ndarray
+        The vessel mask, axes as stored in the file.
+    spacing : tuple of 3 floats
+        Voxel size along axes 0, 1, 2.
+    affine : (4, 4) float64 ndarray
+        Only with ``return_affine=True``: the voxel-to-world affine.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib, numpy as np
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "m.npz"
+    >>> np.savez(path, mask=np.ones((2, 3, 4), bool), spacing=np.array([2.0, 1.0, 0.5]))
+    >>> mask, spacing, affine = load_volume(path, return_affine=True)
+    >>> mask.shape, spacing, np.diag(affine).tolist()
+    ((2, 3, 4), (2.0, 1.0, 0.5), [2.0, 1.0, 0.5, 1.0])
     """
     path = Path(path)
     if threshold is not None and label is not None:  # before reading anything
         raise ValueError("pass threshold= or label=, not both")
-    given = None if spacing is None else _spacing_argument(spacing)
+    given = None if spacing is None else spacing_argument(spacing)
     reader = _READERS.get(_extension(path))
     if reader is None:
         supported = ", ".join(sorted(_READERS))
@@ -188,11 +240,16 @@ def load_volume(
         raise FileNotFoundError(f"{path}: no such file or directory")
     budget = _Budget(path, _available_memory() if max_memory is None else max_memory)
     try:
-        data, file_spacing = reader(path, key, budget)
+        data, file_spacing, *file_affine = reader(path, key, budget)
         data = np.asarray(data)
         if data.ndim != 3:
             raise VolumeError(f"{path}: expected a 3-D volume, got shape {data.shape}")
-        return _binarise(data, path, threshold, label), given or _check_spacing(file_spacing, path)
+        mask = _binarise(data, path, threshold, label)
+        voxel = given or _check_spacing(file_spacing, path)
+        if not return_affine:
+            return mask, voxel
+        affine = np.asarray(file_affine[0], float) if file_affine else np.diag([*voxel, 1.0])
+        return mask, voxel, affine
     except (FileNotFoundError, ModuleNotFoundError, VolumeError):
         raise
     except MemoryError as e:
@@ -218,16 +275,6 @@ def _binarise(
         return _core.binarise(data, threshold, label)
     except (ValueError, TypeError) as e:
         raise VolumeError(f"{path}: {e}") from e
-
-
-def _spacing_argument(spacing: Sequence[float] | float) -> Spacing:
-    """``spacing=`` as 3 floats (one number: the same on every axis); its values are
-    checked by the run, as for any spacing."""
-    values = np.asarray(spacing, dtype=np.float64).reshape(-1)
-    if values.size not in (1, 3):
-        raise ValueError(f"spacing={spacing!r} must be 3 numbers or one")
-    values = np.broadcast_to(values, 3)
-    return float(values[0]), float(values[1]), float(values[2])
 
 
 def _check_spacing(spacing: Any, path: Path) -> Spacing:
@@ -276,14 +323,20 @@ def _read_npz(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
         return npz[key], spacing
 
 
-def _read_nifti(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
+def _read_nifti(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any, Any]:
     nib = import_extra("nibabel", "io")
     image = nib.load(path)  # the header only: the data are read below
     scaled = getattr(image.dataobj, "slope", 1.0) != 1 or getattr(image.dataobj, "inter", 0) != 0
     budget.check(image.header.get_data_shape(), image.get_data_dtype(), 8 if scaled else 0)
     data = _drop_unit_axes(np.asanyarray(image.dataobj), spatial_first=True)
     # Zooms are float32: read 0.3 back as the decimal that was meant, as the binary does.
-    return data, [float(str(zoom)) for zoom in image.header.get_zooms()[:3]]
+    zooms = [float(str(zoom)) for zoom in image.header.get_zooms()[:3]]
+    affine = image.header.get_sform(coded=True)[0]
+    if affine is None:
+        affine = image.header.get_qform(coded=True)[0]
+    if affine is None:  # neither code set: the NIfTI standard's method 1, as the binary
+        affine = np.diag([abs(z) for z in zooms] + [1.0])
+    return data, zooms, affine
 
 
 def _read_tiff(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
@@ -316,6 +369,13 @@ def _ome_tiff_spacing(ome_xml: str) -> list[float]:
 
 
 def _read_zarr(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
+    array, spacing = open_zarr(path, key)
+    return _zarr_array(array, budget), spacing
+
+
+def open_zarr(path: Path, key: str | None) -> tuple[Any, Any]:
+    """The Zarr array of ``path`` (not read; unit axes not dropped) and its spacing, by
+    the rules of :func:`load_volume`."""
     zarr = import_extra("zarr", "io")
     node = zarr.open(str(path), mode="r")
     if not hasattr(node, "shape"):  # a group: OME-Zarr (0.4 in attributes, 0.5 under "ome")
@@ -324,7 +384,7 @@ def _read_zarr(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
         if not multiscales:
             if key is None:
                 raise VolumeError(f"{path}: a Zarr group without OME metadata: pass key=")
-            return _zarr_array(node[key], budget), (1.0, 1.0, 1.0)
+            return node[key], (1.0, 1.0, 1.0)
         datasets = multiscales[0]["datasets"]
         paths = [d["path"] for d in datasets]
         if key is not None and key not in paths:
@@ -334,9 +394,8 @@ def _read_zarr(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
         for transform in dataset.get("coordinateTransformations", []):
             if transform.get("type") == "scale":
                 spacing = np.asarray(transform["scale"], dtype=np.float64)
-        array = _zarr_array(node[dataset["path"]], budget)
-        return _drop_unit_axes(array, spatial_first=False), spacing[-3:]
-    return _zarr_array(node, budget), (1.0, 1.0, 1.0)
+        return node[dataset["path"]], spacing[-3:]
+    return node, (1.0, 1.0, 1.0)
 
 
 def _zarr_array(array: Any, budget: _Budget) -> Any:
@@ -367,7 +426,7 @@ def _read_hdf5(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
         return dataset[...], spacing
 
 
-def _read_sitk(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
+def _read_sitk(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any, Any]:
     sitk = import_extra("SimpleITK", "io")
     info = sitk.ImageFileReader()
     info.SetFileName(str(path))
@@ -376,14 +435,19 @@ def _read_sitk(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
     shape = (*reversed(info.GetSize()), *([components] if components > 1 else []))
     budget.check(shape, _SITK_DTYPES.get(info.GetPixelIDValue(), "float64"))
     image = sitk.ReadImage(str(path))
-    return sitk.GetArrayFromImage(image), tuple(reversed(image.GetSpacing()))
+    # World = origin + direction @ diag(spacing) @ index (x, y, z); array axes are (z, y, x).
+    linear = np.reshape(image.GetDirection(), (3, 3)) @ np.diag(image.GetSpacing())
+    affine = np.eye(4)
+    affine[:3, :3] = linear[:, ::-1]
+    affine[:3, 3] = image.GetOrigin()
+    return sitk.GetArrayFromImage(image), tuple(reversed(image.GetSpacing())), affine
 
 
 _SITK_DTYPES = dict(enumerate(["int8", "uint8", "int16", "uint16", "int32", "uint32"]))
 _SITK_DTYPES.update({6: "int64", 7: "uint64", 8: "float32", 9: "float64"})
 """SimpleITK's scalar pixel ids (sitkInt8 = 0 ... sitkFloat64 = 9); others count as 8 bytes."""
 
-_READERS: dict[str, Callable[[Path, str | None, _Budget], tuple[Any, Any]]] = {
+_READERS: dict[str, Callable[[Path, str | None, _Budget], tuple[Any, ...]]] = {
     ".npy": _read_npy,
     ".npz": _read_npz,
     ".nii": _read_nifti,

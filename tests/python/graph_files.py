@@ -6,15 +6,15 @@ from __future__ import annotations
 import json
 from collections import Counter
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from vesselflow import VesselGraph
-from vesselflow.io import WRITERS
+from vesselflow.io import csv_edges_path
 
 GRAPH_FORMATS = [".npz", ".json", ".graphml", ".swc", ".csv", ".vtp"]
+"""The formats :func:`vesselflow.load_graph` reads (``.precomputed`` is written only)."""
 
 _GRAPHML_HEAD = """<?xml version="1.0" encoding="UTF-8"?>
 <graphml xmlns="http://graphml.graphdrawing.org/xmlns">
@@ -74,15 +74,54 @@ def write_raw(
     else:
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         edges = np.asarray(edges).reshape(-1, 2)
-        unchecked = SimpleNamespace(
-            positions=positions,
-            radii=np.asarray(radii, dtype=np.float64),
-            edges=edges,
-            spacing=np.asarray(spacing, dtype=np.float64),
-            n_nodes=len(positions),
-            n_edges=len(edges),
-        )
-        WRITERS[ext](unchecked, path)  # type: ignore[arg-type]
+        _RAW_WRITERS[ext](path, positions, np.asarray(radii, dtype=np.float64), edges, spacing)
+
+
+def _raw_swc(path: Path, positions: Any, radii: Any, edges: Any, spacing: Any) -> None:
+    """Every node a root, every edge a ``# loop-edge`` line (ids 1-based)."""
+    lines = [f"# spacing {' '.join(repr(float(s)) for s in spacing)}"]
+    lines += [f"# loop-edge {int(a) + 1} {int(b) + 1}" for a, b in edges.tolist()]
+    for i, ((x, y, z), r) in enumerate(zip(positions.tolist(), radii.tolist()), start=1):
+        lines.append(f"{i} 0 {x!r} {y!r} {z!r} {r!r} -1")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _raw_csv(path: Path, positions: Any, radii: Any, edges: Any, spacing: Any) -> None:
+    rows = [
+        f"{i},{x!r},{y!r},{z!r},{r!r}"
+        for i, ((x, y, z), r) in enumerate(zip(positions.tolist(), radii.tolist()))
+    ]
+    path.write_text("\n".join(["id,x,y,z,r", *rows]) + "\n")
+    pairs = [f"{a},{b}" for a, b in edges.tolist()]
+    csv_edges_path(path).write_text("\n".join(["source,target", *pairs]) + "\n")
+
+
+def _raw_vtp(path: Path, positions: Any, radii: Any, edges: Any, spacing: Any) -> None:
+    from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(positions), deep=True))
+    lines = vtkCellArray()
+    lines.SetData(
+        numpy_to_vtkIdTypeArray(np.arange(0, 2 * len(edges) + 1, 2, dtype=np.int64), deep=True),
+        numpy_to_vtkIdTypeArray(np.asarray(edges, dtype=np.int64).reshape(-1).copy(), deep=True),
+    )
+    poly = vtkPolyData()
+    poly.SetPoints(points)
+    poly.SetLines(lines)
+    radius = numpy_to_vtk(np.ascontiguousarray(radii), deep=True)
+    radius.SetName("radius")
+    poly.GetPointData().AddArray(radius)
+    writer = vtkXMLPolyDataWriter()
+    writer.SetFileName(str(path))
+    writer.SetInputData(poly)
+    assert writer.Write() == 1
+
+
+_RAW_WRITERS = {".swc": _raw_swc, ".csv": _raw_csv, ".vtp": _raw_vtp}
 
 
 def canonical(graph: VesselGraph) -> tuple[np.ndarray, np.ndarray, Counter[tuple[int, int]]]:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import vesselflow
-from conftest import make_slow_tube
+from conftest import make_slow_tube, make_tube
 from vesselflow import _core, load_graph
 
 
@@ -63,7 +63,7 @@ def test_bad_command_line_exits_2_with_a_one_line_error(tmp_path):
     np.save(tmp_path / "mask.npy", np.zeros((4, 4, 4), np.uint8))
     mask = str(tmp_path / "mask.npy")
     for args, problem in (
-        (["skeletonize", mask, "-o", str(tmp_path / "g.swc")], "g.swc"),
+        (["skeletonize", mask, "-o", str(tmp_path / "g.xyz")], "g.xyz"),
         (["skeletonize", mask, "-o", str(tmp_path / "g.json"), "--gamma", "-1"], "gamma"),
     ):
         result = run(sys.executable, "-m", "vesselflow", *args)
@@ -98,3 +98,59 @@ def test_ctrl_c_stops_the_console_program_without_output(tmp_path):
     assert code == 130, first + rest
     assert "interrupted" in rest
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mask.npy"]
+
+
+def test_help_gives_every_method_parameter_a_sentence():
+    result = run(sys.executable, "-m", "vesselflow", "skeletonize", "--help")
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    for name in vesselflow.Skeletonizer().params:
+        option = f"--{name.replace('_', '-')} <VALUE>"
+        line = next((line for line in lines if option in line), None)
+        assert line is not None, f"{option} missing"
+        words = line.split(option, 1)[1].split("[default:")[0].split()
+        assert len(words) >= 4, line
+        assert words[-1].endswith("."), line
+    assert "METHOD.md" not in result.stdout
+    assert "docs/parameters.md" in result.stdout
+
+
+def test_a_run_says_how_it_ended_and_what_the_graph_holds(tmp_path):
+    np.save(tmp_path / "tube.npy", make_tube((40, 15, 15)).astype(np.uint8))
+    base = [sys.executable, "-m", "vesselflow", "skeletonize", str(tmp_path / "tube.npy")]
+    result = run(*base, "-o", str(tmp_path / "g.json"))
+    assert result.returncode == 0, result.stderr
+    graph = load_graph(tmp_path / "g.json")
+    ending = [line for line in result.stderr.splitlines() if " after " in line]
+    iterations = graph.info["iterations"]
+    assert ending == [
+        f"vesselflow: converged after {iterations} iteration{'s' * (iterations != 1)}: "
+        f"{graph.n_nodes} nodes, {graph.n_edges} edges, 1 component, 0 independent cycles, "
+        "0 junctions, 2 endpoints"
+    ]
+    # The contraction's parts are timed under one `contract` row, named as in the progress.
+    timing = result.stderr.split("stage ", 1)[1].splitlines()
+    assert [line.split()[0] for line in timing if not line.startswith(" ")][:3] == [
+        "edt",
+        "grid",
+        "contract",
+    ]
+
+    capped = run(*base, "-o", str(tmp_path / "c.json"), "--max-iterations", "1")
+    assert capped.returncode == 0, capped.stderr
+    assert "warning: the contraction stopped at --max-iterations 1" in capped.stderr
+    assert "vesselflow: stopped at --max-iterations after 1 iteration: " in capped.stderr
+    # Under --quiet the warning stays and the ending line goes.
+    quiet = run(*base, "-o", str(tmp_path / "c.json"), "--max-iterations", "1", "-q")
+    assert quiet.stderr.splitlines() == [capped.stderr.splitlines()[-3]]
+
+
+def test_an_empty_mask_warns_on_the_command_line(tmp_path):
+    np.save(tmp_path / "empty.npy", np.zeros((5, 6, 7), np.uint8))
+    result = run(
+        sys.executable, "-m", "vesselflow", "skeletonize", str(tmp_path / "empty.npy"),
+        "-o", str(tmp_path / "g.json"), "-q",
+    )  # fmt: skip
+    assert result.returncode == 0
+    assert result.stderr == "vesselflow: warning: the mask is empty: the graph has no nodes\n"
+    assert load_graph(tmp_path / "g.json").n_nodes == 0

@@ -1,7 +1,10 @@
-"""Graphs out: SWC, VTK PolyData and CSV written by VesselGraph.save, read by load_graph."""
+"""Graphs out: SWC, VTK PolyData, CSV and Neuroglancer skeletons written by
+VesselGraph.save (the Rust writers of the one format registry, which the binary uses
+too), read back by load_graph or by an independent reader."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -9,7 +12,7 @@ import numpy as np
 import pytest
 
 from graph_files import assert_same_graph
-from vesselflow import VesselGraph, load_graph
+from vesselflow import VesselGraph, _core, load_graph
 from vesselflow.io import csv_edges_path
 
 
@@ -176,37 +179,34 @@ def test_vtp_polylines_become_chains_of_edges(tmp_path: Path) -> None:
     np.testing.assert_array_equal(graph.radii, [1.0, 0.5, 0.5, 0.25, 0.25])
 
 
-@pytest.mark.parametrize("ext", [".swc", ".csv", ".vtp"])
-def test_failed_write_leaves_no_file_and_keeps_the_old_one(
-    tmp_path: Path, looped: VesselGraph, ext: str, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("ext", [".swc", ".csv", ".vtp", ".precomputed"])
+def test_refused_write_leaves_no_file_and_keeps_the_old_one(
+    tmp_path: Path, looped: VesselGraph, ext: str
 ) -> None:
-    if ext == ".vtp":
-        pytest.importorskip("vtkmodules")
     path = tmp_path / f"g{ext}"
     path.write_text("old")
-
-    def fail(*args: object) -> None:
-        raise OSError("disk full")
-
-    # Fail after the temporary file exists: at the rename.
-    monkeypatch.setattr("vesselflow.io.os.replace", fail)
-    with pytest.raises(OSError, match="disk full"):
-        looped.save(path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
-    assert path.read_text() == "old"
-
+    if ext == ".csv":  # the second table cannot be written: the first is kept too
+        (tmp_path / "g.edges.csv").mkdir()
+        (tmp_path / "g.edges.csv" / "x").write_text("")
+    if ext in (".csv", ".precomputed"):
+        with pytest.raises(OSError, match=r"g\.(edges\.csv|precomputed)"):
+            looped.save(path)
+        assert path.read_text() == "old"
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            [path.name, "g.edges.csv"] if ext == ".csv" else [path.name]
+        )
     with pytest.raises(OSError, match="absent"):
         looped.save(tmp_path / "absent" / f"g{ext}")
     assert not (tmp_path / "absent").exists()
 
 
-def test_vtp_without_vtk_names_the_extra(
+def test_vtp_is_written_without_vtk_and_read_with_it(
     tmp_path: Path, looped: VesselGraph, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setitem(sys.modules, "vtkmodules.vtkIOXML", None)
+    looped.save(tmp_path / "g.vtp")  # the Rust writer needs no VTK
     with pytest.raises(ModuleNotFoundError, match=r"pip install vesselflow\[io\]"):
-        looped.save(tmp_path / "g.vtp")
-    assert list(tmp_path.iterdir()) == []
+        load_graph(tmp_path / "g.vtp")
 
 
 @pytest.mark.parametrize(
@@ -223,6 +223,79 @@ def test_unreadable_files_are_refused_naming_them(tmp_path: Path, name: str, tex
         pytest.importorskip("vtkmodules")
     path = tmp_path / name
     path.write_text(text)
-    csv_edges_path(path).write_text("source,target\n")
+    if path.suffix == ".csv":
+        csv_edges_path(path).write_text("source,target\n")
     with pytest.raises(ValueError, match=name):
         load_graph(path)
+
+
+WRITTEN = [".graphml", ".json", ".npz", ".swc", ".vtp", ".csv", ".precomputed"]
+
+
+def outputs(path: Path) -> dict[str, bytes]:
+    """Every file a write made, by name (inside a ``.precomputed`` folder too)."""
+    files = [path, csv_edges_path(path)] if path.suffix == ".csv" else [path]
+    found: dict[str, bytes] = {}
+    for file in files:
+        inner = sorted(file.iterdir()) if file.is_dir() else [file]
+        found.update({p.relative_to(path.parent).as_posix(): p.read_bytes() for p in inner})
+    return found
+
+
+@pytest.mark.parametrize("ext", WRITTEN)
+def test_python_and_the_binary_write_the_same_bytes(tmp_path: Path, ext: str) -> None:
+    """One registry: the CLI's file equals VesselGraph.save's of the same graph."""
+    (tmp_path / "cli").mkdir()
+    (tmp_path / "py").mkdir()
+    assert _core.cli_main(["vesselflow", "demo", "-o", str(tmp_path / "cli" / "d.json"), "-q"]) == 0
+    assert (
+        _core.cli_main(["vesselflow", "demo", "-o", str(tmp_path / "cli" / f"d{ext}"), "-q"]) == 0
+    )
+    graph = load_graph(tmp_path / "cli" / "d.json")
+    if ext in (".json", ".npz"):  # the run record holds timings: compare the graph
+        assert_same_graph(load_graph(tmp_path / "cli" / f"d{ext}"), graph)
+        return
+    graph.save(tmp_path / "py" / f"d{ext}")
+    cli, py = outputs(tmp_path / "cli" / f"d{ext}"), outputs(tmp_path / "py" / f"d{ext}")
+    assert cli.keys() == py.keys()
+    assert len(cli) >= 1
+    assert cli == py
+
+
+def test_precomputed_skeleton_reads_back_with_osteoid(tmp_path: Path, looped: VesselGraph) -> None:
+    osteoid = pytest.importorskip("osteoid")
+    path = tmp_path / "g.precomputed"
+    looped.save(path)
+    assert sorted(p.name for p in path.iterdir()) == ["1", "info"]
+    info = json.loads((path / "info").read_text())
+    assert info["@type"] == "neuroglancer_skeletons"
+    assert info["vertex_attributes"] == [
+        {"id": "radius", "data_type": "float32", "num_components": 1}
+    ]
+    skeleton = osteoid.Skeleton.from_precomputed(
+        (path / "1").read_bytes(), segid=1, vertex_attributes=info["vertex_attributes"]
+    )
+    np.testing.assert_array_equal(skeleton.vertices, looped.positions.astype(np.float32))
+    np.testing.assert_array_equal(skeleton.edges, looped.edges.astype(np.uint32))
+    np.testing.assert_array_equal(skeleton.radius, looped.radii.astype(np.float32))
+    # The transform maps the stored (array-order) vertices to x, y, z: x = axis 2.
+    transform = np.reshape(info["transform"], (3, 4))
+    xyz = skeleton.vertices.astype(np.float64) @ transform[:, :3].T + transform[:, 3]
+    np.testing.assert_allclose(xyz, looped.positions[:, ::-1], rtol=1e-6)
+    # In xyz (or world) coordinates the vertices are x, y, z already.
+    looped.to_coordinates("xyz").save(path)  # replaces the earlier folder
+    again = json.loads((path / "info").read_text())
+    assert again["transform"] == [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.precomputed"]
+
+
+def test_precomputed_never_replaces_a_folder_of_other_data(
+    tmp_path: Path, looped: VesselGraph
+) -> None:
+    path = tmp_path / "data.precomputed"
+    path.mkdir()
+    (path / "info").write_text('{"@type": "neuroglancer_multiscale_volume"}')
+    with pytest.raises(FileExistsError, match=r"data\.precomputed.*not a Neuroglancer skeleton"):
+        looped.save(path)
+    assert (path / "info").read_text() == '{"@type": "neuroglancer_multiscale_volume"}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data.precomputed"]

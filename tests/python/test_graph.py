@@ -143,7 +143,7 @@ def test_save_with_numpy_values_in_info(graph, tmp_path):
 
 def test_save_unknown_extension_is_a_value_error_and_writes_nothing(graph, tmp_path):
     with pytest.raises(
-        ValueError, match=r"vessels\.xyz.*\.csv, \.graphml, \.json, \.npz, \.swc, \.vtp"
+        ValueError, match=r"vessels\.xyz.*\.graphml, \.json, \.npz, \.swc, \.vtp, \.csv or \.prec"
     ):
         graph.save(tmp_path / "vessels.xyz")
     assert list(tmp_path.iterdir()) == []

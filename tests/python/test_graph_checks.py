@@ -4,10 +4,10 @@ all or nothing, also when SIGTERM arrives."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -255,66 +255,47 @@ def test_csv_save_failing_on_the_nodes_table_keeps_the_old_edges_table(
     assert temps(tmp_path) == []
 
 
-def test_csv_save_failing_at_the_second_rename_restores_the_first_file(
-    tmp_path: Path, small: VesselGraph, monkeypatch: pytest.MonkeyPatch
+def test_csv_save_that_cannot_write_the_second_table_keeps_both(
+    tmp_path: Path, small: VesselGraph
 ) -> None:
+    # The all-or-nothing replacement itself (a rename failing part-way) is tested in
+    # Rust: crates/io/tests/formats.rs, replace_all_puts_everything_back_...
     path = tmp_path / "g.csv"
     path.write_text("old nodes")
-    csv_edges_path(path).write_text("old edges")
-    replace = os.replace
-    calls: list[str] = []
-
-    def second_fails(src: Any, dst: Any) -> None:
-        calls.append(Path(dst).name)
-        if len(calls) == 2:
-            raise OSError("disk full")
-        replace(src, dst)
-
-    monkeypatch.setattr(vesselflow.io.os, "replace", second_fails)
-    with pytest.raises(OSError, match="disk full"):
+    csv_edges_path(path).mkdir()
+    (csv_edges_path(path) / "x").write_text("")
+    with pytest.raises(IsADirectoryError, match=r"g\.edges\.csv"):
         small.save(path)
-    assert calls[:2] == ["g.csv", "g.edges.csv"]  # the first was replaced, then put back
     assert path.read_text() == "old nodes"
-    assert csv_edges_path(path).read_text() == "old edges"
     assert temps(tmp_path) == []
-
-    # Without old files, a failed save creates neither table.
-    path.unlink()
-    csv_edges_path(path).unlink()
-    calls.clear()
-    with pytest.raises(OSError, match="disk full"):
-        small.save(path)
-    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX signals")
 @pytest.mark.parametrize("ext", [".csv", ".swc"])
-def test_sigterm_during_a_python_write_removes_the_temporaries(
+def test_sigterm_during_a_write_leaves_complete_files_and_no_temporaries(
     tmp_path: Path, small: VesselGraph, monkeypatch: pytest.MonkeyPatch, ext: str
 ) -> None:
     path = tmp_path / f"g{ext}"
     path.write_text("old")
-    csv_edges_path(path).write_text("old")
-    real_open = open
-    opened: list[str] = []
+    real_write = vesselflow._core.write_graph
 
-    def open_then_sigterm(file: Any, *args: Any, **kwargs: Any) -> Any:
-        opened.append(Path(file).name)
-        handle = real_open(file, *args, **kwargs)
-        os.kill(os.getpid(), signal.SIGTERM)  # handled at the next bytecode: mid-write
-        return handle
+    def sigterm_then_write(*args: Any) -> None:
+        # Pending during the Rust write, as a signal that arrives in it is: Python
+        # handles it when the call returns.
+        signal.pthread_sigmask(signal.SIG_BLOCK, [signal.SIGTERM])
+        signal.pthread_kill(threading.get_ident(), signal.SIGTERM)  # to this thread
+        try:
+            real_write(*args)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGTERM])
 
-    monkeypatch.setattr("builtins.open", open_then_sigterm)
-    if ext == ".swc":  # writes with Path.write_text
-        monkeypatch.setattr(Path, "write_text", lambda self, *a, **k: open_then_sigterm(self, "w"))
+    monkeypatch.setattr(vesselflow._core, "write_graph", sigterm_then_write)
     before = signal.getsignal(signal.SIGTERM)
     with pytest.raises(Terminated), sigterm_raises() as terminated:
         small.save(path)
     monkeypatch.undo()
     assert terminated == [True]
-    assert opened[0].startswith(".vesselflow-")  # the signal came while a temporary was open
-    assert path.read_text() == "old"
-    assert csv_edges_path(path).read_text() == "old"
+    assert_same_graph(load_graph(path), small)  # one Rust call: the new files, whole
     assert temps(tmp_path) == []
     assert signal.getsignal(signal.SIGTERM) == before
 

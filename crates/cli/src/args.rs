@@ -12,7 +12,7 @@ use clap::{value_parser, Arg, ArgAction, ArgMatches, Command};
 use std::ffi::OsString;
 use std::path::PathBuf;
 use vesselflow::{Params, Value};
-use vesselflow_io::MaskRule;
+use vesselflow_io::{Coordinates, MaskRule};
 
 /// How much the program says on stderr.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -35,6 +35,8 @@ pub(crate) enum Task {
         rule: MaskRule,
         plot: Option<PathBuf>,
         params: Params,
+        key: Option<String>,
+        coordinates: Coordinates,
     },
     Demo {
         output: Option<PathBuf>,
@@ -63,6 +65,77 @@ fn command_line_word(value: &Value) -> String {
     }
 }
 
+/// What a method parameter does, in one sentence for `--help` (the parameter guide,
+/// `docs/parameters.md`, says when to change it). `None` for a name the core does not have.
+fn parameter_help(name: &str) -> Option<&'static str> {
+    Some(match name {
+        "connectivity" => {
+            "Neighbours joined in the initial voxel graph: 6 (faces), 18 (and edges) or 26 (and corners)."
+        }
+        "reconnect_thin" => {
+            "Also join nodes of degree <= 2 to every vessel voxel within sqrt(2) voxels, so that one-voxel-thin \
+             vessels stay connected."
+        }
+        "radius_correction" => {
+            "Voxels (of the finest spacing, 0 to 1) taken off every radius, for a mask known to be wider than its \
+             vessels."
+        }
+        "medial_weight" => {
+            "Weights of the medial Laplacian, which pulls nodes to the vessel axis: 'radius' (the authors' code) or \
+             'difference' (the paper's equation 3)."
+        }
+        "skeletal_angle" => {
+            "Degrees (0 to 90) within which a node's neighbours must line up for it to count as already on the \
+             centreline and be anchored harder."
+        }
+        "anchor_ends" => {
+            "Count vessel ends (nodes of degree 1) as on the centreline, so that the flow does not shorten vessels."
+        }
+        "medial" => {
+            "After refinement, move nodes onto the ridge of the distance transform and junctions to where their \
+             branches meet (at most 0.6 radii)."
+        }
+        "eps_gamma" => "How many times (>= 1) harder than the others nodes already on the centreline are anchored.",
+        "alpha" => {
+            "Weight (>= 0) of the smoothing (l2-norm) Laplacian; only the ratios of alpha, beta and gamma matter."
+        }
+        "beta" => "Weight (>= 0) of the medial Laplacian, which pulls nodes towards the vessel axis.",
+        "gamma" => {
+            "Anchoring weight (> 0): lower contracts faster and coarser, higher keeps detail and needs more \
+             iterations."
+        }
+        "cg_tol" => "Relative residual (0 to 0.5) at which each conjugate-gradient solve stops.",
+        "cg_max_iterations" => "Cap (>= 1) on conjugate-gradient iterations per solve.",
+        "max_cycle_nodes" => {
+            "Cycles of fewer nodes than this (4 to 64) are knots to contract: they make up the convergence measure \
+             and are what refinement collapses."
+        }
+        "stop_ratio" => {
+            "The contraction stops when the short-cycle area falls to this fraction (0 to 1) of the reference area."
+        }
+        "stall_ratio" => {
+            "The contraction also stops when an iteration merges fewer than this fraction (0 to 0.5) of the nodes near \
+             the stop level; 0 turns this test off."
+        }
+        "area_reference" => {
+            "Reference area of the stop test: 'volume' (the vessel volume, the authors' code) or 'initial_area' (the \
+             initial graph's short-cycle area, the paper)."
+        }
+        "max_iterations" => "Cap on contraction iterations; a run that reaches it ends with a warning.",
+        "refine_area" => {
+            "Refinement collapses the short cycles smaller than this many squared voxels, except loops around a hole \
+             of the mask."
+        }
+        "max_refine_iterations" => "Cap on refinement iterations.",
+        "threads" => "Worker threads, 0 for one per core; the output does not depend on it.",
+        "max_memory" => {
+            "Refuse a run whose estimated peak memory is larger: bytes, or a size such as 8GB or 512MiB; auto: what \
+             this process may use; 0: no limit."
+        }
+        _ => return None,
+    })
+}
+
 fn with_parameter_options(mut cmd: Command) -> Command {
     for (name, default) in Params::default().values() {
         cmd = cmd.arg(
@@ -71,12 +144,12 @@ fn with_parameter_options(mut cmd: Command) -> Command {
                 .value_name("VALUE")
                 .allow_negative_numbers(true)
                 .help_heading("Method parameters")
-                .help(format!("[default: {}]", command_line_word(&default))),
+                .help(format!("{} [default: {}]", parameter_help(name).unwrap_or(""), command_line_word(&default))),
         );
     }
     cmd.after_help(
-        "Method parameters are those of METHOD.md; in Python they are the keywords of \
-         vesselflow.Skeletonizer, with '_' for '-'.",
+        "Method parameters: docs/parameters.md in the source repository says which to change for what. In \
+         Python they are the keywords of vesselflow.Skeletonizer, with '_' for '-'.",
     )
 }
 
@@ -87,7 +160,7 @@ fn output_arg(required: bool) -> Arg {
         .value_name("OUTPUT")
         .required(required)
         .value_parser(value_parser!(PathBuf))
-        .help("Graph file to write: .graphml, .json or .npz (written atomically)")
+        .help(format!("Graph file to write: {} (written atomically)", vesselflow_io::GraphFormat::extensions_text()))
 }
 
 fn plot_arg() -> Arg {
@@ -138,6 +211,24 @@ pub(crate) fn command() -> Command {
                 .allow_negative_numbers(true)
                 .value_parser(value_parser!(f64))
                 .help("Take one label of a label image: vessel where value == V"),
+        )
+        .arg(
+            Arg::new("key")
+                .long("key")
+                .value_name("NAME")
+                .help("The array of an .npz file to read [default: 'mask', or its only array besides 'spacing']"),
+        )
+        .arg(
+            Arg::new("coordinates")
+                .long("coordinates")
+                .value_name("FRAME")
+                .value_parser(Coordinates::NAMES)
+                .default_value("array")
+                .help(
+                    "Frame of the graph's positions: array (physical units along array axes 0, 1, 2), xyz (x = the \
+                     last axis, as SWC/VTK/Neuroglancer expect) or world (through the file's voxel-to-world affine, \
+                     e.g. the NIfTI sform/qform); radii stay in the spacing's units",
+                ),
         );
     let demo = Command::new("demo")
         .about("Run on the built-in synthetic volume (branching tubes with a loop) and print a summary")
@@ -195,6 +286,11 @@ where
                 .map_err(Failure::Usage)?,
             plot: m.get_one::<PathBuf>("plot").cloned(),
             params: params(m)?,
+            key: m.get_one::<String>("key").cloned(),
+            coordinates: m
+                .get_one::<String>("coordinates")
+                .map_or(Ok(Coordinates::Array), |c| c.parse())
+                .map_err(Failure::Usage)?,
         },
         Some(("demo", m)) => Task::Demo {
             output: m.get_one::<PathBuf>("output").cloned(),
@@ -249,4 +345,19 @@ fn params(m: &ArgMatches) -> Result<Params, Failure> {
         }
     }
     Ok(params)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_method_parameter_has_one_sentence_of_help() {
+        for name in Params::NAMES {
+            let text = parameter_help(name).unwrap_or_else(|| panic!("no help for {name}"));
+            assert!(text.ends_with('.') && text.matches(". ").count() == 0, "{name}: one sentence: {text}");
+            assert!(!text.contains(".md"), "{name}: the help names no file: {text}");
+        }
+        assert_eq!(parameter_help("no_such_parameter"), None);
+    }
 }

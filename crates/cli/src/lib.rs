@@ -183,7 +183,7 @@ where
 
 fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<String>) -> Result<(), Failure> {
     match task {
-        Task::Skeletonize { input, output, spacing, rule, plot, params } => {
+        Task::Skeletonize { input, output, spacing, rule, plot, params, key, coordinates } => {
             *context.borrow_mut() = format!("input {}", input.display());
             // Refuse a bad output path before reading or computing anything.
             vesselflow_io::check_graph_output(&output)?;
@@ -197,7 +197,7 @@ fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<Stri
                 Some(0) => vesselflow_io::ReadLimits::new(u64::MAX),
                 Some(bytes) => vesselflow_io::ReadLimits::new(bytes),
             };
-            let volume = vesselflow_io::read_volume_limited(&input, spacing, rule, limits)?;
+            let volume = vesselflow_io::read_volume_key(&input, key.as_deref(), spacing, rule, limits)?;
             let shape = volume.mask.shape();
             let mut reporter = Reporter::new(verbosity);
             reporter.line(&format!(
@@ -218,7 +218,25 @@ fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<Stri
             );
             let skel = skeletonize(&skeletonizer, volume.mask.view(), volume.spacing, &mut reporter, stop)?;
             let plot = plot.as_deref().map(|path| (path, volume.mask.view(), volume.spacing));
-            save(Some(&output), plot, &skel, skeletonizer.params(), &reporter, stop)?;
+            // The plot shows the run's own frame (array axes); the graph file the one asked for.
+            let mut info = vesselflow_io::run_info_json(&skel.info);
+            let framed = match coordinates {
+                vesselflow_io::Coordinates::Array => None,
+                _ => {
+                    let mut framed = skel.clone();
+                    let frame =
+                        vesselflow_io::to_frame(&mut framed.positions, skel.spacing, coordinates, &volume.affine)
+                            .map_err(|e| Failure::Run(format!("--coordinates {coordinates}: {e}")))?;
+                    if let Some(warning) = frame.warning {
+                        eprintln!("vesselflow: warning: --coordinates {coordinates}: {warning}");
+                    }
+                    framed.spacing = frame.spacing;
+                    vesselflow_io::frame_info(&mut info, coordinates, &volume.affine);
+                    Some(framed)
+                }
+            };
+            let graph = (output.as_path(), framed.as_ref().unwrap_or(&skel), &info);
+            save(Some(graph), plot, &skel, skeletonizer.params(), &reporter, stop)?;
             Ok(())
         }
         Task::Demo { output, plot, params } => {
@@ -236,7 +254,9 @@ fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<Stri
             let skel = skeletonize(&skeletonizer, mask.view(), [1.0; 3], &mut reporter, stop)?;
             let seconds = started.elapsed().as_secs_f64();
             let plot_of = plot.as_deref().map(|path| (path, mask.view(), [1.0; 3]));
-            save(output.as_deref(), plot_of, &skel, skeletonizer.params(), &reporter, stop)?;
+            let info = vesselflow_io::run_info_json(&skel.info);
+            let graph = output.as_deref().map(|path| (path, &skel, &info));
+            save(graph, plot_of, &skel, skeletonizer.params(), &reporter, stop)?;
             let (n0, n1, n2) = mask.dim();
             let info = &skel.info;
             let text = format!(
@@ -247,11 +267,7 @@ fn execute(task: Task, verbosity: Verbosity, stop: &Stop, context: &RefCell<Stri
                 info.foreground_voxels,
                 GraphSummary::of(&skel),
                 info.iterations,
-                match (info.converged, info.stalled) {
-                    (true, _) => "converged",
-                    (_, true) => "stalled near convergence",
-                    _ => "not converged: hit max_iterations",
-                },
+                report::ending(info),
             );
             std::io::stdout()
                 .lock()
@@ -290,20 +306,7 @@ fn skeletonize(
     reporter.finish();
     let skel = result?;
     reporter.run_details(&skel.info);
-    if skel.info.foreground_voxels == 0 {
-        // Not an error (a block of a larger volume may hold no vessel), but worth a
-        // word even with `--quiet`: an empty file usually means a wrong input.
-        eprintln!("vesselflow: warning: the mask is empty: the graph has no nodes");
-    } else if !(skel.info.converged || skel.info.stalled) {
-        // Also a word under `--quiet`: the graph may still hold unreduced knots.
-        eprintln!(
-            "vesselflow: warning: the contraction stopped at --max-iterations {} before converging \
-             (short-cycle area {:.3} times the stop level); raise --max-iterations or lower --gamma",
-            skel.info.iterations,
-            skel.info.area_per_iteration.last().copied().unwrap_or(0.0)
-                / skel.info.area_reference.max(f64::MIN_POSITIVE),
-        );
-    }
+    reporter.conclude(&skel);
     Ok(skel)
 }
 
@@ -334,10 +337,14 @@ impl Staging {
         Ok(Staging { dir: Some(dir), staged, target: target.to_path_buf() })
     }
 
-    /// Move the staged file to its destination.
+    /// Move the staged output to its destination: every path a graph format writes
+    /// (the `.csv` pair together, a `.precomputed` folder), or the one file.
     fn publish(&self) -> Result<(), Failure> {
-        std::fs::rename(&self.staged, &self.target)
-            .map_err(|e| Failure::Run(format!("cannot write {}: {e}", self.target.display())))
+        let (staged, targets) = match vesselflow_io::GraphFormat::from_path(&self.target) {
+            Some(format) => (format.outputs(&self.staged), format.outputs(&self.target)),
+            None => (vec![self.staged.clone()], vec![self.target.clone()]),
+        };
+        vesselflow_io::replace_all(&staged, &targets).map_err(|e| rename_in_error(e.to_string(), self))
     }
 }
 
@@ -351,12 +358,13 @@ impl Drop for Staging {
     }
 }
 
-/// Write the graph (to `graph`, if given) and the `--plot` picture (if asked), each
-/// first to a temporary file beside its destination; only when both are complete and
-/// no interruption has arrived are they renamed into place. On any failure, panic or
-/// interruption the temporary files are removed and the previous files stay.
+/// Write the graph (`(path, graph, run record)`, if given) and the `--plot` picture
+/// of `skel` (if asked), each first to a temporary file beside its destination; only
+/// when both are complete and no interruption has arrived are they renamed into
+/// place. On any failure, panic or interruption the temporary files are removed and
+/// the previous files stay.
 fn save(
-    graph: Option<&Path>,
+    graph: Option<(&Path, &Skeleton, &vesselflow_io::serde_json::Value)>,
     plot: Option<(&Path, ArrayView3<'_, u8>, [f64; 3])>,
     skel: &Skeleton,
     params: &Params,
@@ -365,10 +373,13 @@ fn save(
 ) -> Result<(), Failure> {
     let interrupted = || if stop.is_requested() { Err(Failure::Interrupted) } else { Ok(()) };
     interrupted()?;
-    let graph = graph.map(Staging::beside).transpose()?;
+    let (graph, out) = match graph {
+        Some((path, out, info)) => (Some(Staging::beside(path)?), Some((out, info))),
+        None => (None, None),
+    };
     let plot = plot.map(|(path, mask, spacing)| Staging::beside(path).map(|s| (s, mask, spacing))).transpose()?;
-    if let Some(g) = &graph {
-        vesselflow_io::write_graph(&g.staged, skel, params).map_err(|e| rename_in_error(e.to_string(), g))?;
+    if let (Some(g), Some((out, info))) = (&graph, out) {
+        vesselflow_io::write_skeleton(&g.staged, out, params, info).map_err(|e| rename_in_error(e.to_string(), g))?;
     }
     interrupted()?;
     let mut bar = None;

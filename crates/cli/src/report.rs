@@ -3,10 +3,11 @@
 //! the per-stage timings, and with `--verbose` every contraction iteration.
 
 use crate::args::Verbosity;
+use crate::summary::GraphSummary;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::IsTerminal;
 use std::time::Duration;
-use vesselflow::{Progress, RunInfo};
+use vesselflow::{Progress, RunInfo, Skeleton};
 
 /// Receives the core's [`Progress`] reports and prints what the verbosity asks for.
 pub(crate) struct Reporter {
@@ -17,7 +18,8 @@ pub(crate) struct Reporter {
     last: Option<Progress>,
 }
 
-/// One line about where the run is, in the words of the method.
+/// One line about where the run is, in the words of the method. The core's
+/// `measure` is the contraction's convergence measure (NaN in the other stages).
 fn describe(p: &Progress) -> String {
     match p.stage {
         "edt" => "edt: distance transform done".to_string(),
@@ -25,17 +27,21 @@ fn describe(p: &Progress) -> String {
         "contract" => {
             format!("contract: iteration {}, {} nodes, cycle area / stop level {:.3}", p.iteration, p.nodes, p.measure)
         }
-        "refine" => {
-            let n = p.measure as u64;
-            format!(
-                "refine: iteration {}, {} nodes, {n} cycle{} collapsed",
-                p.iteration,
-                p.nodes,
-                if n == 1 { "" } else { "s" }
-            )
-        }
         "output" => format!("output: {} nodes", p.nodes),
-        other => format!("{other}: iteration {}, {} nodes, measure {}", p.iteration, p.nodes, p.measure),
+        other => format!("{other}: iteration {}, {} nodes", p.iteration, p.nodes),
+    }
+}
+
+/// How the contraction ended: converged, stalled, or stopped at the cap.
+pub(crate) fn ending(info: &RunInfo) -> &'static str {
+    if info.foreground_voxels == 0 {
+        "empty mask"
+    } else if info.converged {
+        "converged"
+    } else if info.stalled {
+        "stalled near convergence"
+    } else {
+        "stopped at --max-iterations"
     }
 }
 
@@ -90,6 +96,31 @@ impl Reporter {
         }
     }
 
+    /// The end of a finished run: how the contraction ended and the graph's counts
+    /// (unless `--quiet`), after a warning, printed even with `--quiet`, when the mask
+    /// is empty or the contraction stopped at `--max-iterations`.
+    pub(crate) fn conclude(&self, skel: &Skeleton) {
+        let info = &skel.info;
+        if info.foreground_voxels == 0 {
+            // Not an error (a block of a larger volume may hold no vessel), but an empty
+            // file usually means a wrong input.
+            eprintln!("vesselflow: warning: the mask is empty: the graph has no nodes");
+            return;
+        }
+        if !(info.converged || info.stalled) {
+            // The graph may still hold unreduced knots.
+            eprintln!(
+                "vesselflow: warning: the contraction stopped at --max-iterations {} before converging \
+                 (short-cycle area {:.3} times the stop level); raise --max-iterations or lower --gamma",
+                info.iterations,
+                info.area_per_iteration.last().copied().unwrap_or(0.0) / info.area_reference.max(f64::MIN_POSITIVE),
+            );
+        }
+        let n = info.iterations;
+        let iterations = format!("{n} iteration{}", if n == 1 { "" } else { "s" });
+        self.line(&format!("vesselflow: {} after {iterations}: {}", ending(info), GraphSummary::of(skel).line()));
+    }
+
     /// Per-stage timings, and with `--verbose` the contraction history.
     pub(crate) fn run_details(&self, info: &RunInfo) {
         if self.verbosity == Verbosity::Verbose {
@@ -99,14 +130,31 @@ impl Reporter {
     }
 }
 
-/// The seconds of every stage and their total.
+/// The core's timed parts of the contraction stage (Algorithm 1): the rest of its
+/// timed stages are the stages of the progress reports.
+const CONTRACT_PARTS: [&str; 4] = ["laplacian", "solve", "decimate", "cycles"];
+
+/// The seconds of every stage and their total; the contraction's parts are listed,
+/// indented, under one `contract` row, so that the stages read as in the progress lines.
 fn timing_table(info: &RunInfo) -> String {
-    let mut out = String::from("stage        seconds\n");
+    let row = |name: &str, seconds: f64| format!("{name:<12} {seconds:>9.3}\n");
+    let parts: Vec<_> = info.stage_seconds.iter().filter(|t| CONTRACT_PARTS.contains(&t.stage)).collect();
+    let mut out = String::from("stage          seconds\n");
+    let mut contract_done = false;
     for t in &info.stage_seconds {
-        out.push_str(&format!("{:<10} {:>9.3}\n", t.stage, t.seconds));
+        if !CONTRACT_PARTS.contains(&t.stage) {
+            out.push_str(&row(t.stage, t.seconds));
+        } else if !contract_done {
+            contract_done = true;
+            out.push_str(&row("contract", parts.iter().map(|p| p.seconds).sum()));
+            for p in &parts {
+                out.push_str(&row(&format!("  {}", p.stage), p.seconds));
+            }
+        }
     }
     let total: f64 = info.stage_seconds.iter().map(|t| t.seconds).sum();
-    out.push_str(&format!("{:<10} {:>9.3}", "total", total));
+    out.push_str(&row("total", total));
+    out.pop();
     out
 }
 
@@ -135,4 +183,67 @@ fn iteration_table(info: &RunInfo) -> String {
     }
     out.pop();
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vesselflow::StageTime;
+
+    #[test]
+    fn the_contraction_parts_are_timed_under_one_contract_row() {
+        let stage_seconds = [("edt", 0.5), ("grid", 0.25), ("cycles", 1.0), ("laplacian", 2.0), ("solve", 4.0)]
+            .into_iter()
+            .chain([("decimate", 8.0), ("refine", 0.125), ("output", 0.0625)])
+            .map(|(stage, seconds)| StageTime { stage, seconds })
+            .collect();
+        let table = timing_table(&RunInfo { stage_seconds, ..Default::default() });
+        let rows: Vec<(&str, f64)> = table
+            .lines()
+            .skip(1)
+            .map(|l| {
+                let (name, seconds) = l.trim_end().rsplit_once(' ').unwrap();
+                (name.trim_end(), seconds.parse().unwrap())
+            })
+            .collect();
+        let expected = [
+            ("edt", 0.5),
+            ("grid", 0.25),
+            ("contract", 15.0),
+            ("  cycles", 1.0),
+            ("  laplacian", 2.0),
+            ("  solve", 4.0),
+            ("  decimate", 8.0),
+            ("refine", 0.125),
+            ("output", 0.0625),
+            ("total", 15.9375),
+        ];
+        assert_eq!(rows.len(), expected.len(), "{table}");
+        for ((name, seconds), (want, want_seconds)) in rows.into_iter().zip(expected) {
+            assert_eq!(name, want, "{table}");
+            assert!((seconds - want_seconds).abs() < 1e-3, "{table}");
+        }
+    }
+
+    #[test]
+    fn the_ending_names_what_stopped_the_contraction() {
+        let info = |voxels, converged, stalled| RunInfo {
+            foreground_voxels: voxels,
+            converged,
+            stalled,
+            ..Default::default()
+        };
+        assert_eq!(ending(&info(0, true, false)), "empty mask");
+        assert_eq!(ending(&info(9, true, false)), "converged");
+        assert_eq!(ending(&info(9, false, true)), "stalled near convergence");
+        assert_eq!(ending(&info(9, false, false)), "stopped at --max-iterations");
+    }
+
+    #[test]
+    fn only_the_contraction_line_shows_the_measure() {
+        let line = |stage, measure| describe(&Progress { stage, iteration: 3, nodes: 40, measure });
+        assert_eq!(line("contract", 2.5), "contract: iteration 3, 40 nodes, cycle area / stop level 2.500");
+        assert_eq!(line("refine", f64::NAN), "refine: iteration 3, 40 nodes");
+        assert_eq!(line("grid", f64::NAN), "grid: 40 nodes");
+    }
 }

@@ -1,6 +1,6 @@
-//! The short description of a graph that `vesselflow demo` prints: counts that
-//! show at a glance whether the topology is right (components, independent
-//! cycles, junctions, endpoints).
+//! The short description of a graph that `vesselflow demo` prints, and every run
+//! on stderr in one line: counts that show at a glance whether the topology is
+//! right (components, independent cycles, junctions, endpoints).
 
 use petgraph::unionfind::UnionFind;
 use std::fmt;
@@ -41,6 +41,23 @@ impl GraphSummary {
     }
 }
 
+impl GraphSummary {
+    /// The counts in one line, e.g. "12 nodes, 11 edges, 1 component, 0 independent
+    /// cycles, 1 junction, 3 endpoints".
+    pub(crate) fn line(&self) -> String {
+        let count = |n: usize, one: &str, many: &str| format!("{n} {}", if n == 1 { one } else { many });
+        [
+            count(self.nodes, "node", "nodes"),
+            count(self.edges, "edge", "edges"),
+            count(self.components, "component", "components"),
+            count(self.cycles, "independent cycle", "independent cycles"),
+            count(self.junctions, "junction", "junctions"),
+            count(self.endpoints, "endpoint", "endpoints"),
+        ]
+        .join(", ")
+    }
+}
+
 impl fmt::Display for GraphSummary {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         writeln!(f, "nodes               {}", self.nodes)?;
@@ -78,5 +95,13 @@ mod tests {
         assert_eq!((s.components, s.cycles, s.junctions, s.endpoints), (1, 2, 1, 0));
         let e = GraphSummary::of(&graph(0, &[]));
         assert_eq!((e.nodes, e.components, e.cycles), (0, 0, 0));
+    }
+
+    #[test]
+    fn one_line_counts_in_words_singular_and_plural() {
+        let s = GraphSummary::of(&graph(7, &[[0, 1], [1, 2], [0, 2], [2, 3], [5, 6]]));
+        assert_eq!(s.line(), "7 nodes, 5 edges, 3 components, 1 independent cycle, 1 junction, 3 endpoints");
+        let e = GraphSummary::of(&graph(1, &[]));
+        assert_eq!(e.line(), "1 node, 0 edges, 1 component, 0 independent cycles, 0 junctions, 0 endpoints");
     }
 }

@@ -154,9 +154,9 @@ fn unwritable_output_fails_before_the_run_and_leaves_no_file() {
 fn unsupported_extensions_are_usage_errors() {
     let dir = TempDir::new().unwrap();
     let input = cylinder_npy(dir.path());
-    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&dir.path().join("g.csv"))]);
-    assert_error(&out, 2, "g.csv");
-    assert!(stderr(&out).contains(".graphml, .json or .npz"));
+    let out = vesselflow(&["skeletonize", path_str(&input), "-o", path_str(&dir.path().join("g.tsv"))]);
+    assert_error(&out, 2, "g.tsv");
+    assert!(stderr(&out).contains(".graphml, .json, .npz, .swc, .vtp, .csv or .precomputed"));
     let mha = dir.path().join("mask.mha");
     fs::write(&mha, b"ObjectType = Image\n").unwrap();
     let out = vesselflow(&["skeletonize", path_str(&mha), "-o", path_str(&dir.path().join("g.json"))]);
@@ -396,9 +396,14 @@ fn sigint_stops_the_binary_with_130_and_no_output() {
 /// A cylinder of radius 4 along axis 2 (40 voxels) with its axis at (10, 10, ·), as `.npy`:
 /// unlike [`cylinder_npy`], it lies in the plane of the `--plot` projection.
 fn across_tube_npy(dir: &Path) -> PathBuf {
-    let path = dir.join("across.npy");
-    let tube = shapes::cylinder([40, 21, 21], 4.0).permuted_axes([1, 2, 0]).as_standard_layout().to_owned();
-    assert_eq!(tube.shape(), [21, 21, 40]);
+    across_tube_of_length(dir, 40)
+}
+
+/// [`across_tube_npy`] `length` voxels long, as `across.npy` (40) or `across-LENGTH.npy`.
+fn across_tube_of_length(dir: &Path, length: usize) -> PathBuf {
+    let path = dir.join(if length == 40 { "across.npy".to_string() } else { format!("across-{length}.npy") });
+    let tube = shapes::cylinder([length, 21, 21], 4.0).permuted_axes([1, 2, 0]).as_standard_layout().to_owned();
+    assert_eq!(tube.shape(), [21, 21, length]);
     tube.write_npy(File::create(&path).unwrap()).unwrap();
     path
 }
@@ -430,18 +435,19 @@ fn plot_draws_the_centreline_in_colour_over_the_grey_projection() {
     assert!(line.contains("colour bar: edge radius"), "{line}");
     let image = image::open(&png).unwrap().to_rgb8();
 
-    // Axis 1: 21 voxels of 2 = 42 units, the long side (800 px); axis 2: 40 voxels of
-    // 1 = 40 units, 762 px; the colour bar is to the right of the projection.
-    let map_width = (40.0_f64 * 800.0 / 42.0).round() as u32;
-    assert_eq!(image.height(), 800);
-    assert!(image.width() > map_width && image.width() < map_width + 100, "{:?}", image.dimensions());
+    // Axis 1: 21 voxels of 2 = 42 units, the long side (600 px, the least a picture
+    // has); axis 2: 40 voxels of 1 = 40 units, 571 px; the colour bar, its ticks and
+    // its label are to the right of the projection.
+    let map_width = (40.0_f64 * 600.0 / 42.0).round() as u32;
+    assert_eq!(image.height(), 600);
+    assert!(image.width() > map_width + 60 && image.width() < map_width + 200, "{:?}", image.dimensions());
     // The tube is 9 voxels (18 units) thick across the 40 units of its length.
     let tube_rows =
         (0..image.height()).filter(|&y| image.get_pixel(map_width / 2, y) != &image::Rgb([0, 0, 0])).count();
     let ratio = tube_rows as f64 / f64::from(map_width);
     assert!((ratio - 18.0 / 40.0).abs() < 0.03, "physical aspect: {tube_rows} rows over {map_width} px = {ratio}");
 
-    // The centreline, voxel row 10 of axis 1, is at pixel row 10.5 * 800 / 21 = 400.
+    // The centreline, voxel row 10 of axis 1, is at pixel row 10.5 * 600 / 21 = 300.
     let doc: Value = serde_json::from_reader(File::open(&json).unwrap()).unwrap();
     let positions: Vec<[f64; 3]> = serde_json::from_value(doc["positions"].clone()).unwrap();
     let min2 = positions.iter().map(|p| p[2]).fold(f64::INFINITY, f64::min);
@@ -450,11 +456,11 @@ fn plot_draws_the_centreline_in_colour_over_the_grey_projection() {
     let (x0, x1) = (((min2 + 1.0) * px_per_unit) as u32, (max2 * px_per_unit) as u32);
     assert!(x1 > x0 + 300, "the graph spans the tube: {min2}..{max2}");
     for x in x0..x1 {
-        // Within 0.2 voxel (8 px) of the axis.
-        assert!((392..=408).any(|y| !is_grey(image.get_pixel(x, y))), "no coloured pixel at column {x}");
+        // Within 0.2 voxel (6 px) of the axis.
+        assert!((294..=306).any(|y| !is_grey(image.get_pixel(x, y))), "no coloured pixel at column {x}");
     }
     for (x, y, p) in image.enumerate_pixels() {
-        if x < map_width && !(386..=414).contains(&y) {
+        if x < map_width && !(288..=312).contains(&y) {
             assert!(is_grey(p), "coloured pixel {p:?} off the centreline at ({x}, {y})");
         }
     }
@@ -468,15 +474,50 @@ fn demo_writes_a_plot_and_says_what_the_colour_bar_spans() {
     let out = vesselflow(&["demo", "--plot", path_str(&png)]);
     assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
     assert!(stderr(&out).contains("colour bar: edge radius"), "{}", stderr(&out));
-    // Demo volume 48 x 112 x 96, isotropic: 112 rows are the long side.
+    // Demo volume 48 x 112 x 96, isotropic: 112 rows are the long side, 4 px per voxel
+    // is less than the least a picture has (600 px).
     let image = image::open(&png).unwrap().to_rgb8();
-    assert_eq!(image.height(), 800);
-    assert!(image.width() > 686, "{:?}", image.dimensions());
+    assert_eq!(image.height(), 600);
+    assert!(image.width() > 514 + 60, "{:?}", image.dimensions());
     assert!(image.pixels().filter(|p| !is_grey(p)).count() > 1000, "edges and colour bar");
 
     let quiet = vesselflow(&["demo", "--plot", path_str(&png), "-q"]);
     assert_eq!(quiet.status.code(), Some(0));
     assert!(stderr(&quiet).is_empty(), "{}", stderr(&quiet));
+}
+
+/// The number of coloured (graph) pixels in column `x` of the projection.
+fn coloured_rows(image: &image::RgbImage, x: u32) -> usize {
+    (0..image.height()).filter(|&y| !is_grey(image.get_pixel(x, y))).count()
+}
+
+#[test]
+fn plot_size_and_line_width_grow_with_the_volume() {
+    let dir = TempDir::new().unwrap();
+    let picture = |length: usize| {
+        let input = across_tube_of_length(dir.path(), length);
+        let png = dir.path().join(format!("tube-{length}.png"));
+        let out = vesselflow(&[
+            "skeletonize",
+            path_str(&input),
+            "-o",
+            path_str(&dir.path().join("g.json")),
+            "--plot",
+            path_str(&png),
+            "-q",
+        ]);
+        assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+        image::open(&png).unwrap().to_rgb8()
+    };
+    // 40 voxels along the picture: 600 px (the least); 300 voxels: 4 px each, 1200 px.
+    let (short, long) = (picture(40), picture(300));
+    let (short_map, long_map) = (600, 1200);
+    assert!(short.width() > short_map && short.width() < short_map + 200, "{:?}", short.dimensions());
+    assert!(long.width() > long_map && long.width() < long_map + 300, "{:?}", long.dimensions());
+    // Lines are 1/300 of the picture's longer side: 2 px and 4 px wide (plus a pixel of
+    // anti-aliasing), across the middle of the tube's centreline.
+    let (thin, thick) = (coloured_rows(&short, short_map / 2), coloured_rows(&long, long_map / 2));
+    assert!((2..=4).contains(&thin) && thick > thin, "{thin} and {thick} coloured rows");
 }
 
 #[test]

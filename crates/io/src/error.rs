@@ -14,7 +14,7 @@ pub enum IoError {
     Corrupt { path: PathBuf, format: &'static str, reason: String },
     /// The volume's extension is none of the readable ones.
     #[error(
-        "cannot read {path}: unsupported volume format (this program reads .npy, .nii, \
+        "cannot read {path}: unsupported volume format (this program reads .npy, .npz, .nii, \
          .nii.gz, .tif and .tiff; the Python package's vesselflow.load_volume reads more formats)",
         path = .path.display()
     )]
@@ -59,8 +59,9 @@ pub enum IoError {
     },
     /// The graph's extension is none of the writable ones.
     #[error(
-        "cannot write {path}: unsupported graph format (use .graphml, .json or .npz)",
-        path = .path.display()
+        "cannot write {path}: unsupported graph format (use {extensions})",
+        path = .path.display(),
+        extensions = crate::GraphFormat::extensions_text()
     )]
     UnsupportedGraph { path: PathBuf },
     /// The graph file could not be created or written.

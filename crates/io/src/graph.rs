@@ -1,10 +1,18 @@
-//! Graph writers: the `vesselflow-graph` format (version 1) as `.graphml`, `.json`
-//! or `.npz`, written atomically (a temporary file beside the target, renamed
-//! over it once complete), so a failed or interrupted write leaves no partial file.
+//! Graph writers, the one registry of graph formats (the `vesselflow` binary and
+//! Python's `VesselGraph.save` both write through [`write_graph_arrays`]): the
+//! `vesselflow-graph` format (version 1) as `.graphml`, `.json` or `.npz`, and the
+//! formats of other tools, `.swc`, `.vtp`, `.csv` (a pair of tables) and
+//! `.precomputed` (a Neuroglancer skeleton folder). Everything is written
+//! atomically (temporary files beside the target, renamed over it once complete;
+//! several outputs are replaced together, see [`replace_all`]), so a failed or
+//! interrupted write leaves no partial file.
 //!
-//! Positions are physical units in array axis order (axis 0, 1, 2); node ids are
-//! `0..N-1`. The `.json` and `.npz` files also carry the run record (`info`) and
-//! the parameters (`params`); `.graphml` carries the spacing only.
+//! Positions are physical units in the graph's coordinate frame (array axis order
+//! unless `info["coordinates"]` says `"xyz"` or `"world"`); node ids are `0..N-1`.
+//! The `.json` and `.npz` files also carry the run record (`info`) and the
+//! parameters (`params`); the other formats carry the spacing at most.
+
+mod formats;
 
 use crate::IoError;
 use ndarray::{Array1, Array2, ArrayView1, ArrayView2};
@@ -12,7 +20,7 @@ use serde::ser::{Serialize, Serializer};
 use serde_json::{json, Map, Value};
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use tempfile::NamedTempFile;
 use vesselflow::{Params, RunInfo, Skeleton};
 
@@ -21,26 +29,62 @@ pub const FORMAT_NAME: &str = "vesselflow-graph";
 /// The `version` field of every graph file.
 pub const FORMAT_VERSION: u32 = 1;
 
-/// The graph file formats [`write_graph`] can write, chosen by extension.
+/// The graph file formats [`write_graph`] can write, chosen by extension: the one
+/// registry of graph formats.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum GraphFormat {
-    /// `.graphml`: undirected GraphML, node data `x`, `y`, `z` (axes 0, 1, 2) and `r`.
+    /// `.graphml`: undirected GraphML, node data `x`, `y`, `z` (positions' columns 0, 1, 2) and `r`.
     GraphMl,
     /// `.json`: one object with every array and the metadata.
     Json,
     /// `.npz`: NumPy arrays `positions`, `radii`, `edges`, `spacing`, `metadata`.
     Npz,
+    /// `.swc`: one tree per component, breadth-first, loops in `# loop-edge` lines.
+    Swc,
+    /// `.vtp`: VTK XML PolyData, one line per edge, a `radius` point array.
+    Vtp,
+    /// `.csv`: a nodes table `name.csv` (`id,x,y,z,r`) and an edges table
+    /// `name.edges.csv` (`source,target`), replaced together.
+    Csv,
+    /// `.precomputed`: a Neuroglancer precomputed skeleton folder (`info` and the
+    /// skeleton of segment 1, with a `radius` vertex attribute).
+    Precomputed,
 }
 
 impl GraphFormat {
+    /// Every format with its extension, in the order error messages list them.
+    pub const ALL: [(GraphFormat, &'static str); 7] = [
+        (GraphFormat::GraphMl, "graphml"),
+        (GraphFormat::Json, "json"),
+        (GraphFormat::Npz, "npz"),
+        (GraphFormat::Swc, "swc"),
+        (GraphFormat::Vtp, "vtp"),
+        (GraphFormat::Csv, "csv"),
+        (GraphFormat::Precomputed, "precomputed"),
+    ];
+
     /// The format a file name asks for (case-insensitive extension), if any.
     pub fn from_path(path: &Path) -> Option<GraphFormat> {
         let ext = path.extension()?.to_string_lossy().to_ascii_lowercase();
-        match ext.as_str() {
-            "graphml" => Some(GraphFormat::GraphMl),
-            "json" => Some(GraphFormat::Json),
-            "npz" => Some(GraphFormat::Npz),
-            _ => None,
+        GraphFormat::ALL.iter().find(|(_, e)| *e == ext).map(|(f, _)| *f)
+    }
+
+    /// The supported extensions as a message lists them: `.graphml, .json, ... or .precomputed`.
+    pub fn extensions_text() -> String {
+        let names: Vec<String> = GraphFormat::ALL.iter().map(|(_, e)| format!(".{e}")).collect();
+        format!("{} or {}", names[..names.len() - 1].join(", "), names[names.len() - 1])
+    }
+
+    /// Every path a write to `path` creates or replaces: `path` itself, and for
+    /// `.csv` the edges table beside it (`g.csv` -> `g.edges.csv`).
+    pub fn outputs(self, path: &Path) -> Vec<PathBuf> {
+        match self {
+            GraphFormat::Csv => {
+                let stem = path.file_stem().unwrap_or_default().to_string_lossy();
+                let ext = path.extension().unwrap_or_default().to_string_lossy();
+                vec![path.to_path_buf(), path.with_file_name(format!("{stem}.edges.{ext}"))]
+            }
+            _ => vec![path.to_path_buf()],
         }
     }
 }
@@ -103,14 +147,20 @@ pub fn params_json(params: &Params) -> Value {
 }
 
 /// Write `skel` (with the `params` that made it) to `path`, in the format its
-/// extension names (`.graphml`, `.json`, `.npz`). Atomic: on any error no file is
+/// extension names (see [`GraphFormat`]). Atomic: on any error no file is
 /// left at `path` (an existing file there is replaced only on success).
 pub fn write_graph(path: &Path, skel: &Skeleton, params: &Params) -> Result<(), IoError> {
+    write_skeleton(path, skel, params, &run_info_json(&skel.info))
+}
+
+/// [`write_graph`] with the run record given as JSON (e.g. [`run_info_json`] with
+/// the entries of [`frame_info`] added).
+pub fn write_skeleton(path: &Path, skel: &Skeleton, params: &Params, info: &Value) -> Result<(), IoError> {
     let invalid = |reason: String| IoError::InvalidGraph { path: path.to_path_buf(), reason };
     let positions =
         ArrayView2::from_shape((skel.len(), 3), skel.positions.as_flattened()).map_err(|e| invalid(e.to_string()))?;
     let edges = Array2::from_shape_fn((skel.edges.len(), 2), |(e, end)| skel.edges[e][end] as i64);
-    let (info, params) = (run_info_json(&skel.info), params_json(params));
+    let params = params_json(params);
     write_graph_arrays(
         path,
         &GraphArrays {
@@ -118,10 +168,23 @@ pub fn write_graph(path: &Path, skel: &Skeleton, params: &Params) -> Result<(), 
             radii: ArrayView1::from(&skel.radii[..]),
             edges: edges.view(),
             spacing: skel.spacing,
-            info: &info,
+            info,
             params: &params,
         },
     )
+}
+
+/// Record in a run record (a JSON object) the frame of its graph's positions:
+/// `"coordinates"` (`"array"`, `"xyz"` or `"world"`) and, for `"world"`, the
+/// `"affine"` (4 × 4, row-major). The writers read it back: the SWC header says
+/// what `x y z` are, the Neuroglancer `transform` maps array order to x, y, z.
+pub fn frame_info(info: &mut Value, coordinates: crate::Coordinates, affine: &[[f64; 4]; 4]) {
+    if let Some(map) = info.as_object_mut() {
+        map.insert("coordinates".to_string(), json!(coordinates.name()));
+        if coordinates == crate::Coordinates::World {
+            map.insert("affine".to_string(), json!(affine));
+        }
+    }
 }
 
 /// Write a graph given as arrays (see [`GraphArrays`]) to `path`, like
@@ -130,19 +193,31 @@ pub fn write_graph(path: &Path, skel: &Skeleton, params: &Params) -> Result<(), 
 pub fn write_graph_arrays(path: &Path, graph: &GraphArrays<'_>) -> Result<(), IoError> {
     let format = check_graph_output(path)?;
     check_arrays(graph).map_err(|reason| IoError::InvalidGraph { path: path.to_path_buf(), reason })?;
-    write_atomically(path, |w| match format {
-        GraphFormat::GraphMl => write_graphml(w, graph),
-        GraphFormat::Json => write_json(w, graph),
-        GraphFormat::Npz => write_npz(w, graph),
-    })
+    match format {
+        GraphFormat::GraphMl => write_atomically(path, |w| write_graphml(w, graph)),
+        GraphFormat::Json => write_atomically(path, |w| write_json(w, graph)),
+        GraphFormat::Npz => write_atomically(path, |w| write_npz(w, graph)),
+        GraphFormat::Swc => write_atomically(path, |w| formats::write_swc(w, graph)),
+        GraphFormat::Vtp => write_atomically(path, |w| formats::write_vtp(w, graph)),
+        GraphFormat::Csv => formats::write_csv(path, &format.outputs(path), graph),
+        GraphFormat::Precomputed => formats::write_precomputed(path, graph),
+    }
 }
 
 /// Check, before a long run, that a graph can be written to `path`: a known
-/// extension, not a directory, and a directory that exists and accepts a new file
+/// extension, not a directory (a `.precomputed` folder may replace an earlier
+/// one, nothing else), and a directory that exists and accepts a new file
 /// (checked by creating and removing a temporary file there).
 pub fn check_graph_output(path: &Path) -> Result<GraphFormat, IoError> {
     let format = GraphFormat::from_path(path).ok_or_else(|| IoError::UnsupportedGraph { path: path.to_path_buf() })?;
-    check_writable(path)?;
+    for output in format.outputs(path) {
+        if format == GraphFormat::Precomputed {
+            formats::check_precomputed_target(&output)?;
+            temp_file_beside(&output).map(drop).map_err(|source| IoError::Write { path: output.clone(), source })?;
+        } else {
+            check_writable(&output)?;
+        }
+    }
     Ok(format)
 }
 
@@ -210,6 +285,85 @@ fn temp_file_beside(path: &Path) -> io::Result<NamedTempFile> {
     builder
         .tempfile_in(dir)
         .map_err(|e| io::Error::new(e.kind(), format!("cannot create a file in {}: {}", dir.display(), e.kind())))
+}
+
+/// A new temporary folder in the directory of `path` (mode 0755), for outputs
+/// that are folders (`.precomputed`) or staged before [`replace_all`].
+pub fn temp_dir_beside(path: &Path) -> io::Result<tempfile::TempDir> {
+    let dir = temp_file_beside(path)?; // the same checks and messages as for a file
+    let parent = dir.path().parent().map(Path::to_path_buf).unwrap_or_default();
+    drop(dir);
+    let temp = tempfile::Builder::new().prefix(".vesselflow-").suffix(".tmp").tempdir_in(parent)?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(temp.path(), std::fs::Permissions::from_mode(0o755))?;
+    }
+    Ok(temp)
+}
+
+/// Move each `staged` path (a file or a folder) to its `target`, all or nothing:
+/// if any move fails, the targets already replaced get their old contents back,
+/// targets that did not exist are removed, and the error is returned. An existing
+/// target file keeps its name until it is replaced (it is kept aside through a hard
+/// link, or a copy where links are not supported); an existing target folder is
+/// moved aside, then removed once everything is in place.
+pub fn replace_all(staged: &[PathBuf], targets: &[PathBuf]) -> Result<(), IoError> {
+    debug_assert_eq!(staged.len(), targets.len());
+    let mut backups: Vec<Option<tempfile::TempPath>> = Vec::new();
+    let mut moved = 0;
+    let result = (|| {
+        for target in targets {
+            backups.push(keep_aside(target).map_err(|source| IoError::Write { path: target.clone(), source })?);
+        }
+        for (from, to) in staged.iter().zip(targets) {
+            std::fs::rename(from, to).map_err(|source| IoError::Write { path: to.clone(), source })?;
+            moved += 1;
+        }
+        Ok(())
+    })();
+    if result.is_err() {
+        for (i, (from, to)) in staged.iter().zip(targets).enumerate().take(moved) {
+            let _ = std::fs::rename(to, from); // the staged copy goes back where its owner removes it
+            if let Some(Some(backup)) = backups.get(i) {
+                let _ = std::fs::rename(backup, to);
+            }
+        }
+        // Folders moved aside but not replaced go back too.
+        for (i, to) in targets.iter().enumerate().skip(moved) {
+            if let Some(Some(backup)) = backups.get(i) {
+                if backup.is_dir() {
+                    let _ = std::fs::rename(backup, to);
+                }
+            }
+        }
+    }
+    for backup in backups.into_iter().flatten() {
+        if backup.is_dir() {
+            let _ = std::fs::remove_dir_all(&backup);
+        }
+        drop(backup); // removes a backup file
+    }
+    result
+}
+
+/// Give an existing `target` a second, temporary name beside it (a file: a hard
+/// link or copy; a folder: moved there), returned so it can be restored or removed.
+fn keep_aside(target: &Path) -> io::Result<Option<tempfile::TempPath>> {
+    let Ok(meta) = std::fs::symlink_metadata(target) else {
+        return Ok(None);
+    };
+    let backup = temp_file_beside(target)?.into_temp_path();
+    if meta.is_dir() {
+        std::fs::remove_file(&backup)?;
+        std::fs::rename(target, &backup)?;
+    } else {
+        std::fs::remove_file(&backup)?;
+        if std::fs::hard_link(target, &backup).is_err() {
+            std::fs::copy(target, &backup)?;
+        }
+    }
+    Ok(Some(backup))
 }
 
 /// Write `path` all or nothing: `write` fills a temporary file beside it, which is

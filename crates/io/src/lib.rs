@@ -2,9 +2,10 @@
 //!
 //! The file layer shared by the `vesselflow` command-line program and the Python
 //! bindings: the input rule ([`MaskRule`], [`binarise`]: which images are masks and how
-//! others become one), vessel masks in ([`read_volume`]: `.npy`, `.nii`, `.nii.gz`, `.tif`)
-//! and centreline graphs out ([`write_graph`]: `.graphml`, `.json`, `.npz`, in
-//! the `vesselflow-graph` format, version 1). Every failure is an [`IoError`]
+//! others become one), vessel masks in ([`read_volume`]: `.npy`, `.npz`, `.nii`, `.nii.gz`, `.tif`)
+//! and centreline graphs out ([`write_graph`], the one registry of graph formats,
+//! [`GraphFormat`]: `.graphml`, `.json`, `.npz` in the `vesselflow-graph` format,
+//! version 1, and `.swc`, `.vtp`, `.csv`, `.precomputed`). Every failure is an [`IoError`]
 //! whose message names the file and the problem; nothing here panics on bad input,
 //! and no partial output file is ever left behind. Readers take a memory budget
 //! ([`read_volume_limited`], [`ReadLimits`]; by default what [`budget::usable_memory`]
@@ -25,16 +26,21 @@
 
 mod binarise;
 pub mod budget;
+mod coords;
 mod error;
 mod graph;
 mod volume;
 
 pub use binarise::{binarise, Binariser, MaskRule, Sample, MASK_ADVICE};
+pub use coords::{check_affine, to_frame, Coordinates, Frame};
 pub use error::IoError;
 pub use graph::{
-    check_graph_output, check_writable, params_json, run_info_json, write_atomically, write_graph, write_graph_arrays,
-    GraphArrays, GraphFormat, FORMAT_NAME, FORMAT_VERSION,
+    check_graph_output, check_writable, frame_info, params_json, replace_all, run_info_json, temp_dir_beside,
+    write_atomically, write_graph, write_graph_arrays, write_skeleton, GraphArrays, GraphFormat, FORMAT_NAME,
+    FORMAT_VERSION,
 };
 /// The JSON library of [`GraphArrays`]' metadata, so callers need no dependency of their own.
 pub use serde_json;
-pub use volume::{read_volume, read_volume_limited, read_volume_with_spacing, ReadLimits, VolumeFile};
+pub use volume::{
+    read_volume, read_volume_key, read_volume_limited, read_volume_with_spacing, spacing_affine, ReadLimits, VolumeFile,
+};

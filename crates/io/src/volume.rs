@@ -1,5 +1,5 @@
-//! Volume readers: `.npy`, NIfTI (`.nii`, `.nii.gz`) and TIFF stack (`.tif`, `.tiff`)
-//! files to a binary mask.
+//! Volume readers: `.npy`, `.npz`, NIfTI (`.nii`, `.nii.gz`) and TIFF stack (`.tif`,
+//! `.tiff`) files to a binary mask, with its spacing and voxel-to-world affine.
 //!
 //! Values become a mask by the input rule ([`MaskRule`], see [`crate::binarise`]),
 //! applied while the data stream through the reader, so the mask takes 1 byte per
@@ -32,6 +32,20 @@ pub struct VolumeFile {
     /// Physical size of a voxel along axes 0, 1, 2: NIfTI `pixdim[1..4]`, or
     /// `[1, 1, 1]` for formats that carry none.
     pub spacing: [f64; 3],
+    /// The 4 × 4 voxel-to-world affine (row-major; voxel index `(i, j, k, 1)` to
+    /// world `(x, y, z, 1)`): NIfTI's sform, else its qform, else `pixdim`
+    /// scaling; for formats without one the diagonal of `spacing`.
+    pub affine: [[f64; 4]; 4],
+}
+
+/// The affine of a format that has only a spacing: `diag(spacing, 1)`.
+pub fn spacing_affine(spacing: [f64; 3]) -> [[f64; 4]; 4] {
+    let mut a = [[0.0; 4]; 4];
+    for (axis, s) in spacing.iter().enumerate() {
+        a[axis][axis] = *s;
+    }
+    a[3][3] = 1.0;
+    a
 }
 
 /// How much memory a read may take.
@@ -69,6 +83,7 @@ impl Default for ReadLimits {
 /// The volume formats [`read_volume`] understands, by file name.
 enum VolumeFormat {
     Npy,
+    Npz,
     Nifti,
     Tiff,
 }
@@ -77,6 +92,8 @@ fn volume_format(path: &Path) -> Option<VolumeFormat> {
     let name = path.file_name()?.to_string_lossy().to_ascii_lowercase();
     if name.ends_with(".npy") {
         Some(VolumeFormat::Npy)
+    } else if name.ends_with(".npz") {
+        Some(VolumeFormat::Npz)
     } else if name.ends_with(".nii") || name.ends_with(".nii.gz") {
         Some(VolumeFormat::Nifti)
     } else if name.ends_with(".tif") || name.ends_with(".tiff") {
@@ -86,7 +103,7 @@ fn volume_format(path: &Path) -> Option<VolumeFormat> {
     }
 }
 
-/// Read a binary vessel mask from `.npy`, `.nii`, `.nii.gz`, `.tif` or `.tiff`,
+/// Read a binary vessel mask from `.npy`, `.npz`, `.nii`, `.nii.gz`, `.tif` or `.tiff`,
 /// with the file's spacing, within the default memory budget
 /// ([`ReadLimits::for_this_process`]).
 ///
@@ -96,7 +113,9 @@ fn volume_format(path: &Path) -> Option<VolumeFormat> {
 /// instead.
 ///
 /// `.npy`: bool, integer or float32/float64 dtype, either byte order, C or Fortran
-/// order; spacing 1, 1, 1. NIfTI-1: the header's byte order, `vox_offset` and
+/// order; spacing 1, 1, 1. `.npz`: the array `mask`, or the only one besides a
+/// `spacing` array, which gives the spacing ([`read_volume_key`] picks another).
+/// NIfTI-1: the header's byte order, `vox_offset` and
 /// `scl_slope`/`scl_inter` are honoured (scaled data are floating point); a 4-D
 /// (or higher) volume whose extra dimensions are all 1 is read as 3-D; spacing is `|pixdim[1..4]|`, which must
 /// be finite with magnitude in `[1e-12, 1e12]` (else [`IoError::BadPixdim`]).
@@ -136,14 +155,35 @@ pub fn read_volume_limited(
     rule: MaskRule,
     limits: ReadLimits,
 ) -> Result<VolumeFile, IoError> {
-    match volume_format(path) {
-        Some(VolumeFormat::Npy) => {
+    read_volume_key(path, None, spacing, rule, limits)
+}
+
+/// [`read_volume_limited`], with the array of an `.npz` named by `key` (other
+/// formats hold one volume: a `key` is refused for them).
+pub fn read_volume_key(
+    path: &Path,
+    key: Option<&str>,
+    spacing: Option<[f64; 3]>,
+    rule: MaskRule,
+    limits: ReadLimits,
+) -> Result<VolumeFile, IoError> {
+    let format = volume_format(path).ok_or_else(|| IoError::UnsupportedVolume { path: path.to_path_buf() })?;
+    if key.is_some() && !matches!(format, VolumeFormat::Npz) {
+        return Err(not_a_mask(path, "a key (an array name) applies to .npz files only".to_string()));
+    }
+    match format {
+        VolumeFormat::Npy => {
             let mask = npy::read_npy(path, rule, limits)?;
-            Ok(VolumeFile { mask, spacing: spacing.unwrap_or([1.0; 3]) })
+            let spacing = spacing.unwrap_or([1.0; 3]);
+            Ok(VolumeFile { mask, spacing, affine: spacing_affine(spacing) })
         }
-        Some(VolumeFormat::Nifti) => nii::read_nifti(path, spacing, rule, limits),
-        Some(VolumeFormat::Tiff) => tif::read_tiff(path, spacing, rule, limits),
-        None => Err(IoError::UnsupportedVolume { path: path.to_path_buf() }),
+        VolumeFormat::Npz => {
+            let (mask, file_spacing) = npy::read_npz(path, key, spacing.is_none(), rule, limits)?;
+            let spacing = spacing.or(file_spacing).unwrap_or([1.0; 3]);
+            Ok(VolumeFile { mask, spacing, affine: spacing_affine(spacing) })
+        }
+        VolumeFormat::Nifti => nii::read_nifti(path, spacing, rule, limits),
+        VolumeFormat::Tiff => tif::read_tiff(path, spacing, rule, limits),
     }
 }
 

@@ -337,11 +337,11 @@ fn invalid_arrays_are_refused_and_an_existing_file_is_kept() {
 #[test]
 fn unknown_extension_creates_nothing() {
     let dir = TempDir::new().unwrap();
-    for name in ["g.txt", "g", "g.json.bak", "g.csv"] {
+    for name in ["g.txt", "g", "g.json.bak", "g.tsv"] {
         let path = dir.path().join(name);
         let err = write_graph(&path, &skeleton(), &Params::default()).unwrap_err();
         let msg = err.to_string();
-        assert!(msg.contains(name) && msg.contains(".graphml, .json or .npz"), "{msg}");
+        assert!(msg.contains(name) && msg.contains(".graphml, .json, .npz, .swc, .vtp, .csv or .precomputed"), "{msg}");
         assert!(check_graph_output(&path).is_err());
     }
     assert!(listing(dir.path()).is_empty());

@@ -24,7 +24,10 @@ pub fn value_from_py(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Value> {
         });
     }
     if obj.hasattr("__float__")? {
-        return Ok(Value::Float(obj.extract()?));
+        // Not `?`: Python 3.9's `complex` has a `__float__` that raises (the TypeError below).
+        if let Ok(value) = obj.extract::<f64>() {
+            return Ok(Value::Float(value));
+        }
     }
     Err(PyTypeError::new_err(format!(
         "parameter `{name}` must be a bool, int, float or str, got {}",
@@ -34,7 +37,8 @@ pub fn value_from_py(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Value> {
 
 fn is_numpy_bool(obj: &Bound<'_, PyAny>) -> PyResult<bool> {
     let ty = obj.get_type();
-    Ok(ty.module()? == "numpy" && matches!(ty.name()?.to_str()?, "bool" | "bool_"))
+    // `to_cow`, not `to_str`: the stable ABI has no borrowed UTF-8 view before 3.10.
+    Ok(ty.module()? == "numpy" && matches!(&*ty.name()?.to_cow()?, "bool" | "bool_"))
 }
 
 /// A parameter value as the Python object it came from.

@@ -235,7 +235,56 @@ fn read_stream<R: Read>(
     let [n0, n1, n2] = dims.map(|d| d as usize);
     // NIfTI stores voxels with the first index fastest: Fortran order, axes (i, j, k).
     let mask = Array3::from_shape_vec((n0, n1, n2).f(), values).map_err(|e| corrupt(path, FORMAT, e))?;
-    Ok(VolumeFile { mask, spacing })
+    let affine = affine(&header).ok_or_else(|| {
+        corrupt(path, FORMAT, "the voxel-to-world affine (sform or qform) is not finite numbers".to_string())
+    })?;
+    Ok(VolumeFile { mask, spacing, affine })
+}
+
+/// The header's voxel-to-world affine, chosen as nibabel's `get_best_affine` and
+/// the NIfTI-1 standard do: the sform when `sform_code` > 0, else the qform (the
+/// quaternion, `qfac` and `pixdim`) when `qform_code` > 0, else the scaling by
+/// `|pixdim[1..4]|` (the standard's method 1). `None` if it is not finite.
+fn affine(header: &NiftiHeader) -> Option<[[f64; 4]; 4]> {
+    let mut a = [[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+    let pixdim = [1, 2, 3].map(|i| f64::from(header.pixdim[i]).abs());
+    if header.sform_code > 0 {
+        for (row, srow) in a.iter_mut().zip([header.srow_x, header.srow_y, header.srow_z]) {
+            *row = srow.map(f64::from);
+        }
+    } else if header.qform_code > 0 {
+        let [b, c, d] = [header.quatern_b, header.quatern_c, header.quatern_d].map(f64::from);
+        let w = (1.0 - (b * b + c * c + d * d)).max(0.0).sqrt();
+        let rotation = quaternion_matrix(w, b, c, d);
+        let qfac = if header.pixdim[0] < 0.0 { -1.0 } else { 1.0 };
+        let scale = [pixdim[0], pixdim[1], qfac * pixdim[2]];
+        let offset = [header.quatern_x, header.quatern_y, header.quatern_z].map(f64::from);
+        for row in 0..3 {
+            for col in 0..3 {
+                a[row][col] = rotation[row][col] * scale[col];
+            }
+            a[row][3] = offset[row];
+        }
+    } else {
+        for axis in 0..3 {
+            a[axis][axis] = pixdim[axis];
+        }
+    }
+    a.iter().flatten().all(|x| x.is_finite()).then_some(a)
+}
+
+/// The rotation of the quaternion `(w, x, y, z)`, normalised first.
+fn quaternion_matrix(w: f64, x: f64, y: f64, z: f64) -> [[f64; 3]; 3] {
+    let norm = w * w + x * x + y * y + z * z;
+    if norm < f64::EPSILON {
+        return [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    }
+    let s = 2.0 / norm;
+    let (xs, ys, zs) = (x * s, y * s, z * s);
+    let (wx, wy, wz) = (w * xs, w * ys, w * zs);
+    let (xx, xy, xz) = (x * xs, x * ys, x * zs);
+    let (yy, yz, zz) = (y * ys, y * zs, z * zs);
+    [[1.0 - (yy + zz), xy - wz, xz + wy], [xy + wz, 1.0 - (xx + zz), yz - wx], [xz - wy, yz + wx, 1.0 - (xx + yy)]]
 }
 
 /// [`stream_mask`] for the header's datatype: scaled data (`scl_slope`, `scl_inter`)

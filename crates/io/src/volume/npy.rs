@@ -1,5 +1,6 @@
 //! `.npy` masks (`numpy.lib.format`, versions 1 to 3): bool, integer and
-//! float32/float64 dtypes of either byte order, C or Fortran order.
+//! float32/float64 dtypes of either byte order, C or Fortran order; and `.npz`
+//! archives of them (a zip of `.npy` members), one array picked by name.
 
 use super::{
     check_budget, checked_product, corrupt, dims_text, not_a_mask, read_error, stream_mask, try_vec, ReadLimits,
@@ -10,7 +11,7 @@ use crate::{IoError, MaskRule};
 use ndarray::{Array3, ShapeBuilder};
 use num_traits::ToPrimitive;
 use std::fs::File;
-use std::io::{BufReader, Read, Seek};
+use std::io::{BufReader, Read};
 use std::path::Path;
 
 /// Headers longer than this are refused: NumPy's own reader stops at 10 000 bytes
@@ -31,8 +32,9 @@ struct NpyHeader {
 
 /// Parse the header of an `.npy` file of `file_len` bytes: magic string,
 /// version, header length, then a Python dict literal with `descr`,
-/// `fortran_order` and `shape`. Leaves `reader` at the first data byte.
-fn read_npy_header(reader: &mut impl Read, file_len: u64) -> Result<NpyHeader, String> {
+/// `fortran_order` and `shape`. Leaves `reader` at the first data byte, whose
+/// offset is returned with the header.
+fn read_npy_header(reader: &mut impl Read, file_len: u64) -> Result<(NpyHeader, u64), String> {
     let too_short = |_| "the file ends inside the header".to_string();
     let mut preamble = [0u8; 8];
     reader.read_exact(&mut preamble).map_err(too_short)?;
@@ -78,7 +80,8 @@ fn read_npy_header(reader: &mut impl Read, file_len: u64) -> Result<NpyHeader, S
         .as_tuple()
         .and_then(|dims| dims.iter().map(|d| d.as_integer()?.to_u64()).collect::<Option<Vec<_>>>())
         .ok_or("'shape' is not a tuple of non-negative integers")?;
-    Ok(NpyHeader { descr: get("descr")?.clone(), fortran_order, shape })
+    let data_start = 8 + length_bytes as u64 + length;
+    Ok((NpyHeader { descr: get("descr")?.clone(), fortran_order, shape }, data_start))
 }
 
 /// The deepest nesting of `(`, `[` and `{` in `text`, counting brackets inside
@@ -159,9 +162,20 @@ impl NpyType {
 pub(super) fn read_npy(path: &Path, rule: MaskRule, limits: ReadLimits) -> Result<Array3<u8>, IoError> {
     let file = File::open(path).map_err(read_error(path))?;
     let file_len = file.metadata().map_err(read_error(path))?.len();
-    let mut reader = BufReader::new(file);
-    let header = read_npy_header(&mut reader, file_len).map_err(|e| corrupt(path, ".npy", e))?;
-    let data_start = reader.stream_position().map_err(read_error(path))?;
+    read_npy_from(path, ".npy", BufReader::new(file), file_len, rule, limits)
+}
+
+/// The mask in the `.npy` data of `file_len` bytes that `reader` yields (a file, or
+/// a member of an `.npz`, `format` names which in messages).
+fn read_npy_from(
+    path: &Path,
+    format: &'static str,
+    mut reader: impl Read,
+    file_len: u64,
+    rule: MaskRule,
+    limits: ReadLimits,
+) -> Result<Array3<u8>, IoError> {
+    let (header, data_start) = read_npy_header(&mut reader, file_len).map_err(|e| corrupt(path, format, e))?;
 
     let shape = header.shape;
     let [n0, n1, n2] = shape[..] else {
@@ -179,13 +193,13 @@ pub(super) fn read_npy(path: &Path, rule: MaskRule, limits: ReadLimits) -> Resul
     // anything, so a truncated file or a header claiming a huge shape fails cleanly.
     let count = checked_product(&shape);
     let Some(data_bytes) = count.and_then(|n| n.checked_mul(item_size)) else {
-        return Err(corrupt(path, ".npy", format!("shape {} is too large", shape_text(&shape))));
+        return Err(corrupt(path, format, format!("shape {} is too large", shape_text(&shape))));
     };
     let available = file_len.saturating_sub(data_start);
     if available < data_bytes {
         return Err(corrupt(
             path,
-            ".npy",
+            format,
             format!(
                 "truncated: shape {} of dtype {} needs {data_bytes} bytes of data, \
                  the file holds {available}",
@@ -225,7 +239,93 @@ pub(super) fn read_npy(path: &Path, rule: MaskRule, limits: ReadLimits) -> Resul
         Array3::from_shape_vec(dims, values)
     };
     // The length was checked against the shape above, so this cannot fail; map it anyway.
-    mask.map_err(|e| corrupt(path, ".npy", e))
+    mask.map_err(|e| corrupt(path, format, e))
+}
+
+/// The mask in the array `key` of an `.npz` archive (by default the array `mask`,
+/// or the only array besides `spacing`), and, if `want_spacing`, the archive's
+/// `spacing` array (3 numbers), if it has one. Members are read through the zip crate's streaming
+/// decoder, only as far as the member's `.npy` header declares, after the same
+/// checks against the budget as an `.npy` file.
+pub(super) fn read_npz(
+    path: &Path,
+    key: Option<&str>,
+    want_spacing: bool,
+    rule: MaskRule,
+    limits: ReadLimits,
+) -> Result<(Array3<u8>, Option<[f64; 3]>), IoError> {
+    const FORMAT: &str = ".npz";
+    let file = File::open(path).map_err(read_error(path))?;
+    let mut archive = zip::ZipArchive::new(BufReader::new(file)).map_err(|e| corrupt(path, FORMAT, e))?;
+    let names: Vec<String> = archive.file_names().filter_map(|n| n.strip_suffix(".npy")).map(String::from).collect();
+    let arrays: Vec<&String> = names.iter().filter(|n| *n != "spacing").collect();
+    let key = match key {
+        Some(k) => k.to_string(),
+        None if arrays.iter().any(|n| *n == "mask") => "mask".to_string(),
+        None if arrays.len() == 1 => arrays[0].clone(),
+        None => {
+            let listed: Vec<&str> = names.iter().map(String::as_str).collect();
+            return Err(not_a_mask(
+                path,
+                format!("choose the array with key= or --key (arrays: {})", listed.join(", ")),
+            ));
+        }
+    };
+    if !arrays.iter().any(|n| **n == key) {
+        let listed: Vec<&str> = names.iter().map(String::as_str).collect();
+        return Err(not_a_mask(path, format!("no array {key:?} (arrays: {})", listed.join(", "))));
+    }
+    // A spacing given by the caller replaces the archive's, which is then not read.
+    let spacing = if want_spacing && names.iter().any(|n| n == "spacing") {
+        let member = archive.by_name("spacing.npy").map_err(|e| corrupt(path, FORMAT, e))?;
+        let size = member.size();
+        Some(read_spacing(member, size).map_err(|e| corrupt(path, FORMAT, format!("the array 'spacing': {e}")))?)
+    } else {
+        None
+    };
+    let member = archive.by_name(&format!("{key}.npy")).map_err(|e| corrupt(path, FORMAT, e))?;
+    let size = member.size();
+    let mask = read_npy_from(path, FORMAT, member, size, rule, limits)?;
+    Ok((mask, spacing))
+}
+
+/// The 3 numbers of an `.npz`'s `spacing` array (any float or integer dtype, any
+/// shape of 3 values), which must be finite and in the range of every spacing.
+fn read_spacing(mut reader: impl Read, len: u64) -> Result<[f64; 3], String> {
+    let (header, _) = read_npy_header(&mut reader, len)?;
+    if checked_product(&header.shape) != Some(3) {
+        return Err(format!("shape {} does not hold 3 numbers", shape_text(&header.shape)));
+    }
+    let (dtype, big_endian) = npy_type(&header.descr).map_err(|kind| format!("dtype {} is {kind}", header.descr))?;
+    let mut bytes = vec![0u8; 3 * dtype.size() as usize];
+    reader.read_exact(&mut bytes).map_err(|_| "truncated".to_string())?;
+    let value = |b: &[u8]| -> f64 {
+        use super::Decode;
+        use crate::Sample;
+        match dtype {
+            NpyType::Bool | NpyType::U8 => f64::from(b[0]),
+            NpyType::I8 => i8::decode(b, big_endian).to_f64(),
+            NpyType::U16 => u16::decode(b, big_endian).to_f64(),
+            NpyType::I16 => i16::decode(b, big_endian).to_f64(),
+            NpyType::U32 => u32::decode(b, big_endian).to_f64(),
+            NpyType::I32 => i32::decode(b, big_endian).to_f64(),
+            NpyType::U64 => u64::decode(b, big_endian).to_f64(),
+            NpyType::I64 => i64::decode(b, big_endian).to_f64(),
+            NpyType::F16 => f64::from(f16_to_f32(u16::decode(b, big_endian))),
+            NpyType::F32 => f64::from(f32::decode(b, big_endian)),
+            NpyType::F64 => f64::decode(b, big_endian),
+        }
+    };
+    let mut spacing = [0.0; 3];
+    for (s, b) in spacing.iter_mut().zip(bytes.chunks_exact(dtype.size() as usize)) {
+        *s = value(b).abs();
+    }
+    if !spacing.iter().all(|&s| super::spacing_in_range(s)) {
+        return Err(format!(
+            "{spacing:?} must be finite numbers of magnitude 1e-12 to 1e12 (pass the spacing explicitly instead)"
+        ));
+    }
+    Ok(spacing)
 }
 
 /// The IEEE 754 half-precision float with bits `h`, widened exactly to `f32`.

@@ -264,5 +264,5 @@ pub(super) fn read_tiff(
     }
     let shape = (pages as usize, height as usize, width as usize);
     let mask = Array3::from_shape_vec(shape, data).map_err(|e| corrupt(path, FORMAT, e))?;
-    Ok(VolumeFile { mask, spacing })
+    Ok(VolumeFile { mask, spacing, affine: super::spacing_affine(spacing) })
 }
