@@ -57,7 +57,7 @@ def _source(source: Any, key: str | None, workdir: Path) -> tuple[_Source, Any]:
     """The source as a worker-readable Zarr array, and its spacing if known."""
     zarr = import_extra("zarr", "dask")
     if isinstance(source, (str, os.PathLike)):
-        array, spacing = open_zarr(Path(source), key)
+        array, spacing, _ = open_zarr(Path(source), key)
         return _Source(array, _lead(array.shape)), spacing
     if isinstance(source, zarr.Array):
         return _Source(source, _lead(source.shape)), None

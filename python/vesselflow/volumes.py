@@ -194,7 +194,7 @@ def load_volume(
     qform (``qform_code > 0``), else the zooms on the diagonal, as the ``vesselflow``
     binary reads it; SimpleITK's origin, direction and spacing (LPS, columns in the
     array's axis order); the diagonal of the spacing for the other formats (``.npy``,
-    ``.npz``, TIFF, HDF5, and Zarr, whose OME ``translation`` is not applied).
+    ``.npz``, TIFF and HDF5; OME-Zarr gives its ``scale`` and ``translation``).
 
     ``spacing`` (3 numbers, or one for every axis) replaces the file's spacing; it is
     needed for a file whose spacing is not finite numbers > 0, which is an error.
@@ -368,14 +368,20 @@ def _ome_tiff_spacing(ome_xml: str) -> list[float]:
     return [1.0, 1.0, 1.0]
 
 
-def _read_zarr(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any]:
-    array, spacing = open_zarr(path, key)
-    return _zarr_array(array, budget), spacing
+def _read_zarr(path: Path, key: str | None, budget: _Budget) -> tuple[Any, Any, Any]:
+    array, spacing, affine = open_zarr(path, key)
+    return _zarr_array(array, budget), spacing, affine
 
 
-def open_zarr(path: Path, key: str | None) -> tuple[Any, Any]:
-    """The Zarr array of ``path`` (not read; unit axes not dropped) and its spacing, by
-    the rules of :func:`load_volume`."""
+def open_zarr(path: Path, key: str | None) -> tuple[Any, Any, NDArray[np.float64]]:
+    """The Zarr array of ``path`` (not read; unit axes not dropped), its spacing and its
+    voxel-to-world affine, by the rules of :func:`load_volume`.
+
+    For OME-Zarr the dataset's ``coordinateTransformations`` (``scale``, then
+    ``translation``) are applied first and then those of the multiscale itself, as the
+    OME-NGFF specification orders them; the last three axes are the spatial ones. The
+    spacing is the diagonal of that affine; a plain array has spacing 1 and the identity.
+    """
     zarr = import_extra("zarr", "io")
     node = zarr.open(str(path), mode="r")
     if not hasattr(node, "shape"):  # a group: OME-Zarr (0.4 in attributes, 0.5 under "ome")
@@ -384,18 +390,34 @@ def open_zarr(path: Path, key: str | None) -> tuple[Any, Any]:
         if not multiscales:
             if key is None:
                 raise VolumeError(f"{path}: a Zarr group without OME metadata: pass key=")
-            return node[key], (1.0, 1.0, 1.0)
+            return node[key], (1.0, 1.0, 1.0), np.eye(4)
         datasets = multiscales[0]["datasets"]
         paths = [d["path"] for d in datasets]
         if key is not None and key not in paths:
             raise VolumeError(f"{path}: no dataset {key!r} (datasets: {', '.join(paths)})")
         dataset = datasets[0 if key is None else paths.index(key)]
-        spacing = np.ones(len(multiscales[0].get("axes", [])) or 3)
-        for transform in dataset.get("coordinateTransformations", []):
-            if transform.get("type") == "scale":
-                spacing = np.asarray(transform["scale"], dtype=np.float64)
-        return node[dataset["path"]], spacing[-3:]
-    return node, (1.0, 1.0, 1.0)
+        affine = np.eye(4)
+        for transforms in (
+            dataset.get("coordinateTransformations", []),
+            multiscales[0].get("coordinateTransformations", []),
+        ):
+            for transform in transforms:
+                kind = transform.get("type")
+                if kind not in ("scale", "translation"):
+                    continue
+                values = np.asarray(transform[kind], dtype=np.float64).reshape(-1)
+                if values.size < 3 or not np.all(np.isfinite(values)):
+                    raise VolumeError(
+                        f"{path}: OME {kind} {values.tolist()} is not 3 finite numbers"
+                    )
+                step = np.eye(4)
+                if kind == "scale":
+                    step[:3, :3] = np.diag(values[-3:])
+                else:
+                    step[:3, 3] = values[-3:]
+                affine = step @ affine
+        return node[dataset["path"]], np.diag(affine)[:3].copy(), affine
+    return node, (1.0, 1.0, 1.0), np.eye(4)
 
 
 def _zarr_array(array: Any, budget: _Budget) -> Any:

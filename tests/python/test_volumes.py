@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vesselflow import load_volume
+from vesselflow import VolumeError, load_volume
 
 
 @pytest.fixture
@@ -139,6 +139,46 @@ def test_ome_zarr_scale_and_unit_axes(tmp_path: Path, mask: np.ndarray, version:
         group.attrs["ome"] = {"version": version, "multiscales": multiscales}
     check(path, mask, (4, 0.5, 0.25))
     check(path, mask[::2, ::2, ::2], (8, 1, 0.5), key="1")
+
+
+def test_ome_zarr_affine_has_scale_then_translation_then_the_multiscale_transform(
+    tmp_path: Path, mask: np.ndarray
+) -> None:
+    # OME-NGFF: a dataset's scale and translation apply first, then the multiscale's own.
+    zarr = pytest.importorskip("zarr", minversion="3")
+    path = tmp_path / "image.ome.zarr"
+    group = zarr.open_group(str(path), mode="w", zarr_format=2)
+    group.create_array("0", data=mask[None].astype(np.uint8))
+    group.attrs["multiscales"] = [
+        {
+            "version": "0.4",
+            "axes": [{"name": n} for n in "czyx"],
+            "datasets": [
+                {
+                    "path": "0",
+                    "coordinateTransformations": [
+                        {"type": "scale", "scale": [1, 4, 0.5, 0.25]},
+                        {"type": "translation", "translation": [0, 10, -2, 3]},
+                    ],
+                }
+            ],
+            "coordinateTransformations": [{"type": "scale", "scale": [1, 2, 2, 2]}],
+        }
+    ]
+    loaded, spacing, affine = load_volume(path, return_affine=True)
+    assert np.array_equal(loaded, mask)
+    assert spacing == (8.0, 1.0, 0.5)
+    index = np.array([3.0, 5.0, 7.0, 1.0])
+    expected = 2 * (index[:3] * [4, 0.5, 0.25] + [10, -2, 3])
+    assert np.allclose(affine @ index, [*expected, 1.0])
+    group.attrs["multiscales"] = [
+        {
+            **group.attrs["multiscales"][0],
+            "coordinateTransformations": [{"type": "scale", "scale": [1, 2]}],
+        }
+    ]
+    with pytest.raises(VolumeError, match="OME scale"):
+        load_volume(path)
 
 
 def test_hdf5_dataset_key_and_spacing_attribute(tmp_path: Path, mask: np.ndarray) -> None:
