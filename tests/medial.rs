@@ -156,13 +156,14 @@ fn a_junction_sits_where_the_centrelines_meet() {
 }
 
 /// The stage is off with `medial = false` and moves nodes when on; both runs give the
-/// same graph (nodes and edges), only the positions differ.
+/// same graph (nodes and edges). The positions differ, and so may the radii, which are
+/// measured on the mask at the final positions (`radius`).
 #[test]
 fn the_stage_moves_nodes_but_keeps_the_graph() {
     let (mask, _, _) = bent_tube_with_bubble();
     let (with, without) = (run(&mask, true), run(&mask, false));
     assert_eq!(with.edges, without.edges);
-    assert_eq!(with.radii, without.radii);
+    assert_eq!(with.radii.len(), without.radii.len());
     assert_ne!(with.positions, without.positions);
 }
 
