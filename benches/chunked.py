@@ -2,16 +2,18 @@
 
     python benches/chunked.py [--block 128] [--workers 2] [--out benches/results/chunked.md]
 
-Volumes: the 256³ synthetic bed (``vesselflow.synth.vascular_bed``, seed 0) and a
-512x512x256 tiling of four beds (seeds 0-3), stored as Zarr (chunks of the block size).
+Volumes: the 256³ synthetic bed (``vesselflow.synth.vascular_bed``, seed 0; ``--size``)
+and a 512x512x256 tiling of four beds (seeds 0-3), stored as Zarr (chunks of the block size).
 For each: the single run in a fresh subprocess (wall time, peak RSS) and the chunked run
 (``vesselflow.distributed.skeletonize``, blocks of ``--block``³) on a fresh LocalCluster
 of ``--workers`` single-threaded worker processes (wall time, every worker's peak RSS);
 then components and cycle rank of both graphs, NetMets at sigma = 1 voxel between them,
 the radii of matched nodes (each chunked node and the nearest single-run node within
-1 voxel), determinism (the run again on 1 worker: identical arrays), a worker killed
-mid-run (same graph), and a resume after deleting parts from the workdir (blocks
-recomputed). Ends with the scaling law and projections for 2048³ and 10000³.
+1 voxel), the same against the single run with its solver's tolerance halved and doubled
+(the method's own spread at sigma = 1), the chunked run's time per phase, determinism (the
+run again on 1 worker: identical arrays), a worker killed mid-run (same graph), and a
+resume after deleting parts from the workdir (blocks recomputed). Ends with the scaling
+law and projections for 2048³ and 10000³.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ import json, resource, sys, time
 import numpy as np, zarr, vesselflow
 mask = np.asarray(zarr.open_array(sys.argv[1], mode="r")[...])
 t = time.perf_counter()
-g = vesselflow.skeletonize(mask)
+g = vesselflow.skeletonize(mask, **json.loads(sys.argv[3]))
 wall = time.perf_counter() - t
 np.savez(sys.argv[2], positions=g.positions, radii=g.radii, edges=g.edges)
 print(json.dumps({"wall": wall, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
@@ -112,6 +114,40 @@ def _killed_run(path: str, block: int, workers: int, workdir: Path) -> tuple[Any
     return g, killed[0]
 
 
+def _single(path: str, npz: Path, params: dict[str, Any]) -> tuple[dict[str, float], Any]:
+    """The single run of the Zarr at ``path`` in a fresh process: (wall, peak), graph."""
+    out = subprocess.run(
+        [sys.executable, "-c", SINGLE, path, str(npz), json.dumps(params)],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    with np.load(npz) as f:
+        graph = vesselflow.VesselGraph(f["positions"], f["radii"], f["edges"])
+    return json.loads(out.stdout.strip().splitlines()[-1]), graph
+
+
+def _compare(one: Any, g: Any) -> dict[str, Any]:
+    """``g`` against the single run ``one``: topology of both, NetMets at sigma = 1
+    voxel, and the radii of matched nodes (each node of ``g`` and the nearest node of
+    ``one`` within 1 voxel)."""
+    dist, idx = cKDTree(one.positions).query(g.positions)
+    matched = dist <= 1.0
+    rel = np.abs(g.radii[matched] - one.radii[idx[matched]]) / np.maximum(
+        one.radii[idx[matched]], 1e-9
+    )
+    nan = float("nan")
+    return {
+        "topology": (_topology(one), _topology(g)),
+        "rates": netmets(one, g, 1.0),
+        "nodes": (one.n_nodes, g.n_nodes),
+        "matched": float(matched.mean()),
+        "radius_median": float(np.median(rel)) if rel.size else nan,
+        "radius_mean": float(rel.mean()) if rel.size else nan,
+        "radius_within_2pc": float((rel <= 0.02).mean()) if rel.size else nan,
+    }
+
+
 def _mb(x: float) -> str:
     return f"{x / 1e6:.0f} MB"
 
@@ -121,28 +157,27 @@ def main() -> None:
     parser.add_argument("--block", type=int, default=128)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", default="benches/results/chunked.md")
+    parser.add_argument("--size", type=int, default=256, help="bed size (the tiling is 2x2x1 beds)")
     args = parser.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="vf-chunked-"))
-    beds = [vascular_bed(256, seed=s) for s in range(4)]
+    n = args.size
+    beds = [vascular_bed(n, seed=s) for s in range(4)]
     tiling = np.concatenate(
         [np.concatenate(beds[0:2], axis=0), np.concatenate(beds[2:4], axis=0)], axis=1
     )
-    volumes = {"bed 256³": beds[0], "tiling 512x512x256": tiling}
+    volumes = {f"bed {n}³": beds[0], f"tiling {2 * n}x{2 * n}x{n}": tiling}
     rows = []
     for name, mask in volumes.items():
         path = str(tmp / f"{len(rows)}.zarr")
         z = zarr.open_array(path, mode="w", shape=mask.shape, dtype=bool, chunks=(args.block,) * 3)
         z[...] = mask
-        single_npz = tmp / f"{len(rows)}.npz"
-        out = subprocess.run(
-            [sys.executable, "-c", SINGLE, path, str(single_npz)],
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-        single = json.loads(out.stdout.strip().splitlines()[-1])
-        with np.load(single_npz) as f:
-            one = vesselflow.VesselGraph(f["positions"], f["radii"], f["edges"])
+        single, one = _single(path, tmp / f"{len(rows)}.npz", {})
+        # The method's own spread at sigma = 1: the single run with its solver's
+        # tolerance halved and doubled (a different rounding of the same flow).
+        spread = {
+            f"single, cg_tol {tol:g}": _single(path, tmp / f"{len(rows)}s.npz", {"cg_tol": tol})[1]
+            for tol in (5e-5, 2e-4)
+        }
         g, wall, peaks = _chunked(path, args.block, args.workers)
         g1, wall1, _ = _chunked(path, args.block, 1)
         killed, did_kill = _killed_run(path, args.block, args.workers, tmp / f"w{len(rows)}")
@@ -150,28 +185,18 @@ def main() -> None:
         for p in parts[:3]:
             p.unlink()
         resumed, _, _ = _chunked(path, args.block, args.workers, workdir=tmp / f"w{len(rows)}")
-        rates = netmets(one, g, 1.0)
-        dist, idx = cKDTree(one.positions).query(g.positions)
-        matched = dist <= 1.0
-        rel = np.abs(g.radii[matched] - one.radii[idx[matched]]) / np.maximum(
-            one.radii[idx[matched]], 1e-9
-        )
         rows.append(
             {
                 "name": name,
                 "shape": mask.shape,
                 "fg": int(mask.sum()),
                 "single": single,
-                "one": one,
                 "g": g,
                 "wall": wall,
                 "wall1": wall1,
                 "peaks": peaks,
-                "rates": rates,
-                "matched": float(matched.mean()),
-                "radius_median": float(np.median(rel)) if rel.size else float("nan"),
-                "radius_mean": float(rel.mean()) if rel.size else float("nan"),
-                "radius_within_2pc": float((rel <= 0.02).mean()) if rel.size else float("nan"),
+                "compare": {"chunked": _compare(one, g)}
+                | {k: _compare(one, x) for k, x in spread.items()},
                 "deterministic": _same(g, g1),
                 "killed": did_kill,
                 "killed_same": _same(g, killed),
@@ -191,30 +216,40 @@ def _report(rows: list[dict[str, Any]], args: Any) -> str:
         f"{args.workers}` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
         f"{os.cpu_count()} cores (shared). Blocks of {args.block}³, halo automatic.",
         "",
-        "| volume | fg voxels | blocks (empty) | halo | components 1 / chunked | cycle rank "
-        "1 / chunked | GFNR | GFPR | CFNR | CFPR |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "Each graph against the single run (default parameters). The rows `single, cg_tol` "
+        "are the method's own spread: the single run again with its solver's tolerance "
+        "halved or doubled (default 1e-4), i.e. the same flow rounded differently. A "
+        "chunked run cannot be closer to the single run than that.",
+        "",
+        "| volume | graph | components 1 / this | cycle rank 1 / this | GFNR | GFPR | CFNR "
+        "| CFPR | nodes 1 / this | matched nodes (≤ 1 voxel) | radius rel. diff. median / "
+        "mean | matched radii within 2 % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        t1, tc = _topology(r["one"]), _topology(r["g"])
-        rt = r["rates"]
-        info = r["g"].info
-        lines.append(
-            f"| {r['name']} | {r['fg']} | {info['blocks']} ({info['blocks_empty']}) | "
-            f"{info['halo']} | {t1[0]} / {tc[0]} | {t1[1]} / {tc[1]} | {rt['gfnr']:.4f} | "
-            f"{rt['gfpr']:.4f} | {rt['cfnr']:.4f} | {rt['cfpr']:.4f} |"
-        )
+        for what, c in r["compare"].items():
+            (c1, k1), (c2, k2) = c["topology"]
+            rt = c["rates"]
+            lines.append(
+                f"| {r['name']} | {what} | {c1} / {c2} | {k1} / {k2} | {rt['gfnr']:.4f} | "
+                f"{rt['gfpr']:.4f} | {rt['cfnr']:.4f} | {rt['cfpr']:.4f} | "
+                f"{c['nodes'][0]} / {c['nodes'][1]} | {c['matched']:.3f} | "
+                f"{100 * c['radius_median']:.2f} % / {100 * c['radius_mean']:.2f} % | "
+                f"{100 * c['radius_within_2pc']:.1f} % |"
+            )
     lines += [
         "",
-        "| volume | nodes 1 / chunked | matched nodes (≤ 1 voxel) | radius rel. diff. "
-        "median / mean | matched radii within 2 % |",
+        "| volume | fg voxels | blocks (empty) | halo | chunked (2 workers): per-chunk pass / "
+        "blocks / merge |",
         "|---|---|---|---|---|",
     ]
     for r in rows:
+        info = r["g"].info
+        sec = info["seconds"]
         lines.append(
-            f"| {r['name']} | {r['one'].n_nodes} / {r['g'].n_nodes} | {r['matched']:.3f} | "
-            f"{100 * r['radius_median']:.2f} % / {100 * r['radius_mean']:.2f} % | "
-            f"{100 * r['radius_within_2pc']:.1f} % |"
+            f"| {r['name']} | {r['fg']} | {info['blocks']} ({info['blocks_empty']}) | "
+            f"{info['halo']} | {sec['chunk_pass']:.1f} s / {sec['blocks']:.1f} s / "
+            f"{sec['merge']:.1f} s |"
         )
     lines += [
         "",
@@ -249,15 +284,16 @@ def _report(rows: list[dict[str, Any]], args: Any) -> str:
         "",
         "## Scaling law and projections",
         "",
-        f"Time per {args.block}³ block on one worker: {per_block[0]:.2f} s (256³) and "
-        f"{per_block[1]:.2f} s (512x512x256); worker peak RSS "
+        f"Time per {args.block}³ block on one worker: {per_block[0]:.2f} s ({a['name']}) and "
+        f"{per_block[1]:.2f} s ({b['name']}); worker peak RSS "
         f"{_mb(max(a['peaks']))} and {_mb(max(b['peaks']))} (4x the volume: "
         f"{max(b['peaks']) / max(a['peaks']):.2f}x); the single run's peak grows "
         f"{b['single']['peak'] / a['single']['peak']:.2f}x.",
         "The block phase is linear in the blocks: time = blocks x t_block / workers; the "
         "merge (one process) is linear in the cells (centreline nodes) and face voxels.",
         "",
-        "| volume | blocks of 128³ (at this density) | 1 worker | 64 workers | 512 workers |",
+        f"| volume | blocks of {args.block}³ (at this density) | 1 worker | 64 workers "
+        "| 512 workers |",
         "|---|---|---|---|---|",
     ]
     t_block = per_block[1]

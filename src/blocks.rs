@@ -2,6 +2,10 @@
 //! that runs on every block of the volume independently, and a merge phase that joins
 //! the blocks' results into one graph.
 //!
+//! **Chunk pass** ([`Skeletonizer::largest_radius`]): the run's own EDT on every core
+//! alone, before any block runs; empty cores are skipped and the largest radius sizes
+//! the halo (the rule is the Python front end's, `vesselflow.distributed`).
+//!
 //! **Block phase** ([`Skeletonizer::contract_block`]): a block is read with a halo
 //! around its *core* (the cores tile the volume, each voxel in exactly one). The whole
 //! method runs on block plus halo (EDT, grid, contraction, refinement, output), every
@@ -33,7 +37,7 @@ use crate::graph::{RunInfo, Skeleton};
 use crate::grid::{Csr, GridGraph};
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
-use crate::volume::Voxel;
+use crate::volume::{edt_squared, Voxel};
 use ndarray::ArrayView3;
 use petgraph::unionfind::UnionFind;
 use std::collections::HashMap;
@@ -243,6 +247,22 @@ impl Skeletonizer {
         }
         faces.sort_unstable();
         Ok(BlockPart { cells, edges, bridges: sorted_pairs(bridges), faces })
+    }
+
+    /// The largest vessel radius of `mask` (physical units): the largest distance from a
+    /// foreground voxel's centre to the nearest background voxel's centre, voxels outside
+    /// the array counting as background (the EDT of the run itself), or `None` for an
+    /// empty mask. The cheap per-chunk pass of a chunked run, which skips empty blocks
+    /// and sizes the halo; on the parameters' `threads`.
+    pub fn largest_radius<T: Voxel>(&self, mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Result<Option<f64>> {
+        crate::volume::check_spacing(spacing)?;
+        let threads = self.params().threads;
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .map_err(|e| Error::ThreadPool { threads, reason: e.to_string() })?;
+        let d = pool.install(|| edt_squared(mask, spacing))?;
+        Ok(d.into_iter().reduce(f32::max).map(|m| f64::from(m).sqrt()))
     }
 
     /// The merge phase of a chunked run (module doc): the graph of all blocks' parts,

@@ -99,3 +99,18 @@ fn bad_cores_are_refused_before_any_work() {
     let e = sk.contract_block(mask.view(), [0; 3], [[0, 9], [0, 8], [0, 8]], [8; 3], [1.0; 3], &Stop::new());
     assert!(e.unwrap_err().to_string().contains("does not fit"));
 }
+
+#[test]
+fn the_chunk_pass_finds_the_largest_radius_with_the_outside_as_background() {
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    assert_eq!(sk.largest_radius(Array3::<u8>::zeros((6, 7, 8)).view(), [1.0; 3]), Ok(None));
+    // A chunk entirely foreground (inside a thick vessel): the voxels at its middle are
+    // 8 voxels from the background outside it.
+    assert_eq!(sk.largest_radius(Array3::<u8>::ones((16, 16, 16)).view(), [1.0; 3]), Ok(Some(8.0)));
+    // A tube of radius 4 along axis 0: from its axis to the nearest background voxel
+    // centre, (4, 1) voxels across, in physical units.
+    let tube = shapes::cylinder([40, 21, 21], 4.0);
+    assert_eq!(sk.largest_radius(tube.view(), [1.0; 3]), Ok(Some(17f64.sqrt())));
+    assert_eq!(sk.largest_radius(tube.view(), [3.0, 0.5, 0.5]), Ok(Some(17f64.sqrt() / 2.0)));
+    assert!(sk.largest_radius(tube.view(), [0.0, 1.0, 1.0]).is_err());
+}

@@ -16,6 +16,7 @@ __all__ = [
     "binarise",
     "cli_main",
     "contract_block",
+    "largest_radius",
     "memory_estimate",
     "merge_blocks",
     "param_defaults",
@@ -93,6 +94,11 @@ def contract_block(
     spacing: Sequence[float],
 ) -> dict[str, NDArray[Any]]:
     """The block phase of a chunked run: a block part as a dict of arrays."""
+
+def largest_radius(
+    skeletonizer: Skeletonizer, mask: NDArray[np.uint8], spacing: Sequence[float]
+) -> float | None:
+    """The largest vessel radius of a chunk (physical units), or None if it is empty."""
 
 def merge_blocks(
     skeletonizer: Skeletonizer,

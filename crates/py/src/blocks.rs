@@ -16,6 +16,7 @@ use crate::skeletonizer::{skeleton_to_py, PySkeletonizer};
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(contract_block, m)?)?;
     m.add_function(wrap_pyfunction!(merge_blocks, m)?)?;
+    m.add_function(wrap_pyfunction!(largest_radius, m)?)?;
     Ok(())
 }
 
@@ -39,6 +40,21 @@ pub fn contract_block<'py>(
         .detach(|| errors::no_panic(context, || sk.contract_block(view, origin, core, volume, spacing, &Stop::new())))?
         .map_err(errors::core)?;
     part_to_py(py, part)
+}
+
+/// The largest vessel radius of `mask` (uint8) in physical units, or `None` if it holds
+/// no foreground: the per-chunk pass of a chunked run.
+#[pyfunction]
+pub fn largest_radius<'py>(
+    py: Python<'py>,
+    skeletonizer: PyRef<'py, PySkeletonizer>,
+    mask: PyReadonlyArray3<'py, u8>,
+    spacing: [f64; 3],
+) -> PyResult<Option<f64>> {
+    let view = mask.as_array();
+    let sk = &skeletonizer.inner;
+    let context = || format!("chunk of shape {:?}", view.shape());
+    py.detach(|| errors::no_panic(context, || sk.largest_radius(view, spacing)))?.map_err(errors::core)
 }
 
 /// The merge phase: the graph of the `parts` (dicts from `contract_block`, in a fixed
