@@ -129,17 +129,8 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
         .into_par_iter()
         .map(|k| {
             let m = &members[start[k]..start[k + 1]];
-            let mut sum = [0.0; 3];
-            let mut r = f64::NEG_INFINITY;
-            for &i in m {
-                let p = g.positions[i as usize];
-                for d in 0..3 {
-                    sum[d] += p[d];
-                }
-                r = r.max(g.radii[i as usize]);
-            }
-            let len = m.len() as f64;
-            ([sum[0] / len, sum[1] / len, sum[2] / len], r, g.component[m[0] as usize])
+            let (mean, r) = mean_and_largest(m, &g.positions, &g.radii);
+            (mean, r, g.component[m[0] as usize])
         })
         .collect();
     let next = NodeGraph {
@@ -151,9 +142,24 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
     Ok((next, map))
 }
 
+/// The mean position and the largest radius of the nodes `m` (a cluster's members).
+pub(crate) fn mean_and_largest(m: &[u32], positions: &[[f64; 3]], radii: &[f64]) -> ([f64; 3], f64) {
+    let mut sum = [0.0; 3];
+    let mut r = f64::NEG_INFINITY;
+    for &i in m {
+        let p = positions[i as usize];
+        for d in 0..3 {
+            sum[d] += p[d];
+        }
+        r = r.max(radii[i as usize]);
+    }
+    let len = m.len() as f64;
+    ([sum[0] / len, sum[1] / len, sum[2] / len], r)
+}
+
 /// The members of every cluster in increasing node order (a counting sort):
 /// cluster `k` holds `members[start[k]..start[k + 1]]`, where `map` gives each node's cluster.
-fn members_by_cluster(map: &[u32], clusters: usize) -> (Vec<usize>, Vec<u32>) {
+pub(crate) fn members_by_cluster(map: &[u32], clusters: usize) -> (Vec<usize>, Vec<u32>) {
     let mut start = filled(clusters + 1, 0usize);
     for &m in map {
         start[m as usize + 1] += 1;
@@ -173,7 +179,7 @@ fn members_by_cluster(map: &[u32], clusters: usize) -> (Vec<usize>, Vec<u32>) {
 /// The graph of the clusters: cluster `k` (members `members[start[k]..start[k + 1]]`)
 /// is joined to every other cluster that a member's neighbour belongs to (`map`).
 /// Built row by row in parallel blocks of clusters, appended in order.
-fn quotient(g: &Csr, map: &[u32], start: &[usize], members: &[u32]) -> Csr {
+pub(crate) fn quotient(g: &Csr, map: &[u32], start: &[usize], members: &[u32]) -> Csr {
     let clusters = start.len() - 1;
     let parts: Vec<(Vec<usize>, Vec<u32>)> = (0..clusters.div_ceil(ROW_BLOCK))
         .into_par_iter()

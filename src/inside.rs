@@ -40,7 +40,11 @@ pub fn voxel_of(p: [f64; 3], spacing: [f64; 3], shape: [usize; 3]) -> Option<[us
 
 /// The centre of the foreground voxel nearest to `p` (in voxels), searched as in the
 /// module doc.
-fn nearest_foreground<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], spacing: [f64; 3]) -> Option<[isize; 3]> {
+pub(crate) fn nearest_foreground<T: Voxel>(
+    mask: &ArrayView3<'_, T>,
+    p: [f64; 3],
+    spacing: [f64; 3],
+) -> Option<[isize; 3]> {
     let (n0, n1, n2) = mask.dim();
     let shape = [n0 as isize, n1 as isize, n2 as isize];
     let centre: [isize; 3] = std::array::from_fn(|d| (p[d] / spacing[d]).round().clamp(-1.0, shape[d] as f64) as isize);

@@ -10,6 +10,7 @@
 //! | [`params`] | parameters, defaults, validation | §III, §IV-B |
 //! | [`volume`] | mask views, spacing, anisotropic exact EDT | §III-A |
 //! | [`grid`] | grid graph (CSR) from the mask, thin-vessel reconnection, components | §III-A |
+//! | [`coarse`] | the coarse start graph: voxels grouped into cells as wide as the vessel (`coarse_cell`) | — |
 //! | [`laplacian`] | l2-norm and medial weights, adaptive anchoring | §III-B, §III-D, eqs. 2–4, 9 |
 //! | [`solver`] | normal equations of eq. 8 by preconditioned conjugate gradients | §III-B, eq. 8 |
 //! | [`precondition`] | the assembled normal matrix and its block Gauss–Seidel preconditioner | eq. 8 |
@@ -18,7 +19,8 @@
 //! | [`inside`] | nodes on background voxels moved to the nearest vessel voxel | — |
 //! | [`medial`] | nodes moved onto the ridge of the distance transform (`medial`) | — |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
-//! | [`radius`] | node radii: cross-section area, or the EDT less a constant | — |
+//! | [`radius`] | node radii: cross-section area scaled by median over RMS chord length (robust to bubbles), or the plain area, or the EDT less a constant | — |
+//! | [`edges_inside`] | edges that cross background subdivided by nodes on the mask | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
@@ -41,8 +43,10 @@
 
 pub mod blocks;
 pub mod cancel;
+pub mod coarse;
 pub mod cycles;
 pub mod decimate;
+pub mod edges_inside;
 pub mod ends;
 pub mod error;
 pub mod graph;

@@ -151,7 +151,7 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 }
 
 /// Two unit vectors orthogonal to the unit vector `t` and to each other.
-fn plane_basis(t: [f64; 3]) -> [[f64; 3]; 2] {
+pub(crate) fn plane_basis(t: [f64; 3]) -> [[f64; 3]; 2] {
     // The axis least aligned with `t` (first on ties) keeps the cross product large.
     let a = (0..3).fold(0, |best, d| if t[d].abs() < t[best].abs() { d } else { best });
     let mut e = [0.0; 3];
@@ -165,7 +165,7 @@ fn plane_basis(t: [f64; 3]) -> [[f64; 3]; 2] {
 /// k_1 b_1)` (`b` two orthonormal directions, `h` the step) within `radius` of `p`,
 /// placed at the weighted centroid of its plateau; `None` when `p` is already there
 /// (to the sample grid) or the target is on background.
-fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f64, c: f64) -> Option<[f64; 3]> {
+pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f64, c: f64) -> Option<[f64; 3]> {
     // The step (a multiple of STEP base cells) and the samples' reach in steps
     // depend on the radius only through integers, so that a radius rounded a hair
     // differently (another spacing scale) gives the same sample grid.
@@ -256,16 +256,10 @@ fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f64, c: f64) 
 }
 
 /// Positions with every node moved to the medial axis (see the module). `radii` are
-/// the nodes' radii (physical units), which bound their moves.
-pub fn recentre<T: Voxel>(
-    g: &Csr,
-    positions: &[[f64; 3]],
-    radii: &[f64],
-    mask: ArrayView3<'_, T>,
-    spacing: [f64; 3],
-) -> Result<Vec<[f64; 3]>> {
-    let field = Field::new(mask, spacing)?;
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+/// the nodes' radii (physical units), which bound their moves; `field` is the
+/// distance transform of the mask ([`Field::new`]).
+pub fn recentre(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field) -> Vec<[f64; 3]> {
+    let c = field.spacing.iter().cloned().fold(f64::INFINITY, f64::min);
     let reach = |i: usize| (CAP * radii[i]).max(MIN_CAP * c);
     let curves: Vec<[f64; 3]> = (0..g.nodes())
         .into_par_iter()
@@ -278,10 +272,10 @@ pub fn recentre<T: Voxel>(
                 _ => return p,
             };
             let n = norm(t);
-            (n > 0.0).then(|| climb(&field, p, plane_basis(t.map(|x| x / n)), reach(i), c)).flatten().unwrap_or(p)
+            (n > 0.0).then(|| climb(field, p, plane_basis(t.map(|x| x / n)), reach(i), c)).flatten().unwrap_or(p)
         })
         .collect();
-    Ok((0..g.nodes())
+    (0..g.nodes())
         .into_par_iter()
         .map(|i| {
             if g.neighbours(i).len() < 3 {
@@ -299,7 +293,7 @@ pub fn recentre<T: Voxel>(
                 p
             }
         })
-        .collect())
+        .collect()
 }
 
 /// The point nearest, in least squares, to the lines of junction `j`'s branches:

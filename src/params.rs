@@ -96,6 +96,11 @@ pub struct Params {
     /// benchmark dilates its masks by one voxel first, which is why 0.75 scored best on
     /// its noisy trees under the EDT radius of `docs/method.md` §1).
     pub radius_correction: f64,
+    /// Start the contraction from cells of voxels this many vessel radii wide rather
+    /// than from one node per voxel ([`crate::coarse`]): cells never span two vessels,
+    /// and vessels of radius under `2 / coarse_cell` voxels keep one node per voxel.
+    /// 0 turns it off (as in the paper).
+    pub coarse_cell: f64,
     /// Medial affinity weighting.
     pub medial_weight: MedialWeight,
     /// Angle (degrees) within which all neighbour directions must be collinear for a
@@ -126,7 +131,9 @@ pub struct Params {
     /// preconditioner's norm (`sqrt(r · B r)`, B the Gauss–Seidel preconditioner, against
     /// its value at the start). 1e-4, not the first default 1e-6:
     /// the fidelity sweep scores them alike (`benches/results/sensitivity.md`) and 1e-4
-    /// needs about 40 % fewer CG iterations.
+    /// needs about 40 % fewer CG iterations. Early contraction iterations, far from
+    /// the stop level, solve more loosely, down to `cg_tol` near it
+    /// ([`crate::solver::solve_tolerance`]).
     pub cg_tol: f64,
     /// Cap on conjugate-gradient iterations per solve.
     pub cg_max_iterations: usize,
@@ -162,6 +169,7 @@ impl Default for Params {
             connectivity: Connectivity::Six,
             reconnect_thin: true,
             radius_correction: 0.0,
+            coarse_cell: 0.0,
             medial_weight: MedialWeight::Radius,
             skeletal_angle: 10.0,
             anchor_ends: true,
@@ -231,10 +239,11 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 22] = [
+    pub const NAMES: [&'static str; 23] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
+        "coarse_cell",
         "medial_weight",
         "skeletal_angle",
         "anchor_ends",
@@ -298,6 +307,7 @@ impl Params {
                 }
                 self.max_cycle_nodes = k;
             }
+            "coarse_cell" => self.coarse_cell = in_range(name, as_f64(name, v)?, 0.0, 4.0, false)?,
             "stop_ratio" => self.stop_ratio = in_range(name, as_f64(name, v)?, 0.0, 1.0, true)?,
             "stall_ratio" => self.stall_ratio = in_range(name, as_f64(name, v)?, 0.0, 0.5, false)?,
             "area_reference" => {
@@ -362,6 +372,7 @@ impl Params {
             ("connectivity", Value::Int(self.connectivity as i64)),
             ("reconnect_thin", Value::Bool(self.reconnect_thin)),
             ("radius_correction", Value::Float(self.radius_correction)),
+            ("coarse_cell", Value::Float(self.coarse_cell)),
             ("medial_weight", Value::Str(mw.into())),
             ("skeletal_angle", Value::Float(self.skeletal_angle)),
             ("anchor_ends", Value::Bool(self.anchor_ends)),

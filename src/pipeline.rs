@@ -3,8 +3,10 @@
 
 use crate::blocks::{follow, VoxelFate};
 use crate::cancel::{self, Stop};
+use crate::coarse;
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
 use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
+use crate::edges_inside::{route_inside, Routed};
 use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
@@ -100,14 +102,16 @@ pub fn contract_step(
     axes: Option<[usize; 3]>,
     clock: &mut StageClock,
 ) -> Result<(NodeGraph, SolveStats)> {
-    contract_step_mapped(g, p, c, axes, clock).map(|(next, stats, _)| (next, stats))
+    contract_step_mapped(g, p, p.cg_tol, c, axes, clock).map(|(next, stats, _)| (next, stats))
 }
 
 /// [`contract_step`] that also returns the new node of every old node
-/// ([`decimate_mapped`]).
+/// ([`decimate_mapped`]), with the solve's relative residual `tol` in place of
+/// `p.cg_tol` (the run's schedule: [`solver::solve_tolerance`]).
 pub fn contract_step_mapped(
     mut g: NodeGraph,
     p: &Params,
+    tol: f64,
     c: f64,
     axes: Option<[usize; 3]>,
     clock: &mut StageClock,
@@ -137,7 +141,7 @@ pub fn contract_step_mapped(
         None => std::mem::take(&mut g.positions),
     };
     let r = clock.time("solve", || m.displacement_rhs(&start));
-    let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, p.cg_tol, p.cg_max_iterations));
+    let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, tol, p.cg_max_iterations));
     drop(m);
     // The solve stops early when the run is asked to stop: its result is partial.
     cancel::checkpoint()?;
@@ -304,8 +308,15 @@ impl Skeletonizer {
         info.mask_components = grid.components;
         report(observer, "grid", 0, n, f64::NAN)?;
         let mut fate = track.then(|| VoxelFate::new(&grid));
-        let mut g =
-            NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
+        // Off, the start graph is the grid graph (no stage in the timings).
+        let (mut g, map) = if p.coarse_cell > 0.0 {
+            clock.time("coarse", || pool.install(|| coarse::coarsen(grid, spacing, p.coarse_cell)))
+        } else {
+            coarse::coarsen(grid, spacing, 0.0)
+        };
+        follow(&mut fate, &map);
+        drop(map);
+        stop.check()?;
 
         // Contraction (Algorithm 1).
         let area = |g: &NodeGraph| pool.install(|| short_cycle_area(&g.graph, &g.positions, p.max_cycle_nodes));
@@ -317,13 +328,14 @@ impl Skeletonizer {
                 AreaReference::Volume => n as f64 * spacing.iter().product::<f64>() / c,
                 AreaReference::InitialArea => a0,
             };
-        info.nodes_per_iteration.push(n);
+        info.nodes_per_iteration.push(g.positions.len());
         info.area_per_iteration.push(a0);
         let mut a_t = a0;
         info.converged = a_t <= info.area_reference;
         while !info.converged && info.iterations < p.max_iterations {
+            let tol = solver::solve_tolerance(p.cg_tol, a_t / info.area_reference);
             let (next, stats, map) =
-                pool.install(|| contract_step_mapped(std::mem::take(&mut g), p, c, axes, &mut clock))?;
+                pool.install(|| contract_step_mapped(std::mem::take(&mut g), p, tol, c, axes, &mut clock))?;
             follow(&mut fate, &map);
             g = next;
             a_t = clock.time("cycles", || area(&g));
@@ -377,19 +389,19 @@ impl Skeletonizer {
             stop.check()?;
         }
 
+        // The distance transform, for the medial stage and the routing of edges.
+        let field = clock.time("medial", || pool.install(|| medial::Field::new(mask, spacing)))?;
+        stop.check()?;
         if p.medial {
-            let moved = clock.time("medial", || {
-                pool.install(|| medial::recentre(&g.graph, &g.positions, &g.radii, mask, spacing))
-            })?;
-            g.positions = moved;
-            stop.check()?;
+            g.positions =
+                clock.time("medial", || pool.install(|| medial::recentre(&g.graph, &g.positions, &g.radii, &field)));
         }
 
         let out = clock.time("output", || {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             let shift = p.radius_correction * c;
             let radii: Vec<f64> = pool
-                .install(|| node_radii(RadiusModel::Section, &g.graph, &g.positions, &g.radii, mask, spacing))
+                .install(|| node_radii(RadiusModel::MEDIAN_CHORDS, &g.graph, &g.positions, &g.radii, mask, spacing))
                 .into_iter()
                 .map(|r| (r - shift).max(0.0))
                 .collect();
@@ -401,9 +413,19 @@ impl Skeletonizer {
             } else {
                 std::mem::take(&mut g.positions)
             };
+            let routed = pool.install(|| route_inside(&g.graph, &positions, &field, mask, spacing));
+            let mut radii = radii;
+            radii.extend(
+                pool.install(|| {
+                    routed.inserted_radii(|g, q, r| node_radii(RadiusModel::Section, g, q, r, mask, spacing))
+                })
+                .into_iter()
+                .map(|r| (r - shift).max(0.0)),
+            );
+            let Routed { graph, positions, .. } = routed;
             Skeleton {
                 radii,
-                edges: g.graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
+                edges: graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
                 positions: positions
                     .iter()
                     .map(|q| std::array::from_fn(|d| q[d] + offset[d] as f64 * spacing[d]))

@@ -4,7 +4,7 @@
 
 use ndarray::Array3;
 use vesselflow::grid::Csr;
-use vesselflow::medial::recentre;
+use vesselflow::medial::{recentre, Field};
 use vesselflow::shapes::{capsules, segment_distance, Capsule};
 use vesselflow::{Params, Skeleton, Skeletonizer};
 
@@ -87,7 +87,7 @@ fn nodes_pulled_off_a_bent_tube_go_back_to_its_axis() {
         })
         .collect();
     assert!(positions.iter().all(|&q| dist(q) > 1.1));
-    let moved = recentre(&path(n), &positions, &vec![3.5; n], mask.view(), [1.0; 3]).unwrap();
+    let moved = recentre(&path(n), &positions, &vec![3.5; n], &Field::new(mask.view(), [1.0; 3]).unwrap());
     for (q, m) in positions.iter().zip(&moved) {
         assert!(dist(*m) <= 0.5, "{q:?} (off by {:.2}) moved to {m:?}, still {:.2} off", dist(*q), dist(*m));
     }
@@ -123,7 +123,7 @@ fn touching_tubes_keep_their_own_axes() {
     for (own, other, toward) in [(a0, b0, 1.0), (b0, a0, -1.0)] {
         // One voxel off the axis toward the other tube.
         let positions: Vec<[f64; 3]> = (0..n).map(|k| add(add(own, t, 2.0 * k as f64 - 14.0), u, toward)).collect();
-        let moved = recentre(&path(n), &positions, &vec![10.0; n], mask.view(), [1.0; 3]).unwrap();
+        let moved = recentre(&path(n), &positions, &vec![10.0; n], &Field::new(mask.view(), [1.0; 3]).unwrap());
         for m in &moved {
             assert!(line_dist(*m, own) <= 0.5, "{m:?}: {:.2} from its axis", line_dist(*m, own));
             assert!(line_dist(*m, other) > 6.0);
@@ -201,7 +201,7 @@ fn moves_stay_on_the_mask_and_within_the_cap() {
     }
     edges.sort_unstable();
     let g = Csr::from_sorted_edges(n, &edges);
-    let moved = recentre(&g, &positions, &radii, mask.view(), spacing).unwrap();
+    let moved = recentre(&g, &positions, &radii, &Field::new(mask.view(), spacing).unwrap());
     let on_mask = |q: [f64; 3]| {
         let v: [usize; 3] = std::array::from_fn(|d| (q[d] / spacing[d]).round() as usize);
         v.iter().zip(mask.shape()).all(|(&x, &s)| x < s) && mask[v] != 0

@@ -76,14 +76,37 @@ struct Case {
     got: Vec<f64>,
 }
 
-const MODELS: [(&str, RadiusModel); 3] = [
+const MODELS: [(&str, RadiusModel); 5] = [
     ("edt - 0.5", RadiusModel::Edt { offset: 0.5 }),
     ("edt", RadiusModel::Edt { offset: 0.0 }),
     ("section", RadiusModel::Section),
+    ("chords q = 0.35", RadiusModel::Chords { quantile: 0.35 }),
+    ("median chords", RadiusModel::MEDIAN_CHORDS),
 ];
 
-/// One tube of radius `r_vox` base cells, the node's radius by every model.
-fn measure(next: &mut impl FnMut() -> f64, r_vox: f64, spacing: [f64; 3], raster: Raster) -> Case {
+/// A unit vector orthogonal to the unit `t`.
+fn across(t: [f64; 3]) -> [f64; 3] {
+    let e = if t[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+    let along = dot(e, t);
+    let u = sub(e, [along * t[0], along * t[1], along * t[2]]);
+    let n = dot(u, u).sqrt();
+    u.map(|x| x / n)
+}
+
+/// Sets every voxel whose centre lies within `radius` of `c` (physical units).
+fn stamp_ball(mask: &mut Array3<u8>, spacing: [f64; 3], c: [f64; 3], radius: f64) {
+    for ((i, j, k), v) in mask.indexed_iter_mut() {
+        let d = sub([i as f64 * spacing[0], j as f64 * spacing[1], k as f64 * spacing[2]], c);
+        if dot(d, d) <= radius * radius {
+            *v = 1;
+        }
+    }
+}
+
+/// One tube of radius `r_vox` base cells, the node's radius by every model; with
+/// `bubbles` balls of radius 2 cells (the bubble noise of `vesselflow.synth`) centred on
+/// its wall at random angles within two cells of the node along the axis.
+fn measure(next: &mut impl FnMut() -> f64, r_vox: f64, spacing: [f64; 3], raster: Raster, bubbles: usize) -> Case {
     let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
     let r = r_vox * c;
     // A random direction (uniform on the sphere) and a box holding the section's slab
@@ -94,7 +117,14 @@ fn measure(next: &mut impl FnMut() -> f64, r_vox: f64, spacing: [f64; 3], raster
     let half = 3.0 * r + 6.0 * c;
     let shape: [usize; 3] = std::array::from_fn(|d| (2.0 * half / spacing[d]).ceil() as usize + 1);
     let o: [f64; 3] = std::array::from_fn(|d| (shape[d] / 2) as f64 * spacing[d] + (next() - 0.5) * spacing[d]);
-    let mask = tube(shape, spacing, o, t, r, raster);
+    let mut mask = tube(shape, spacing, o, t, r, raster);
+    let u = across(t);
+    let w = [t[1] * u[2] - t[2] * u[1], t[2] * u[0] - t[0] * u[2], t[0] * u[1] - t[1] * u[0]];
+    for _ in 0..bubbles {
+        let (s, a) = ((4.0 * next() - 2.0) * c, std::f64::consts::TAU * next());
+        let centre = std::array::from_fn(|d| o[d] + s * t[d] + r * (a.cos() * u[d] + a.sin() * w[d]));
+        stamp_ball(&mut mask, spacing, centre, 2.0 * c);
+    }
     // Node 1 near the axis at `o`, nodes 0 and 2 two cells along it, each up to half a
     // cell off the axis in a random direction.
     let jitter = |next: &mut dyn FnMut() -> f64, p: [f64; 3]| -> [f64; 3] {
@@ -151,7 +181,7 @@ fn table(raster: Raster, spacing: [f64; 3], per_band: usize, seed: u64) -> Vec<V
     for &(lo, hi) in &BANDS {
         for _ in 0..per_band {
             let r = lo + (hi - lo) * next();
-            cases.push(measure(&mut next, r, spacing, raster));
+            cases.push(measure(&mut next, r, spacing, raster, 0));
         }
     }
     eprintln!("\n{raster:?} rasterisation, spacing {spacing:?}: bias % / MAPE % of the node radius");
@@ -169,23 +199,56 @@ fn table(raster: Raster, spacing: [f64; 3], per_band: usize, seed: u64) -> Vec<V
 }
 
 /// The targets of issue 15: |bias| ≤ 3 % and MAPE ≤ 5 % for r = 2…10, both ≤ 10 % for
-/// r = 1–2, by the section model, under both conventions and at anisotropic spacing.
-/// The EDT model with METHOD.md's half-voxel offset misses them (too low), which is
-/// why the section model is the default.
+/// r = 1–2, by the section model and by the median chords (the default), under both
+/// conventions and at anisotropic spacing. The EDT model with METHOD.md's half-voxel
+/// offset misses them (too low); so does a lower chord quantile (0.35) on thin
+/// partial-volume tubes, which is why the default is the median.
 #[test]
-fn section_radii_are_right_across_scales_conventions_and_spacings() {
+fn section_and_chord_radii_are_right_across_scales_conventions_and_spacings() {
     let section = MODELS.iter().position(|m| m.0 == "section").unwrap();
+    let median = MODELS.iter().position(|m| m.0 == "median chords").unwrap();
     let old = MODELS.iter().position(|m| m.0 == "edt - 0.5").unwrap();
     for (k, spacing) in [[1.0; 3], [1.6, 1.0, 1.2]].into_iter().enumerate() {
         for (j, raster) in [Raster::Centre, Raster::Partial].into_iter().enumerate() {
             let rows = table(raster, spacing, 24, 15 + 2 * k as u64 + j as u64);
             for (band, row) in BANDS.iter().zip(&rows) {
-                let (bias, mape) = row[section];
-                let (b_max, m_max) = if band.0 < 2.0 { (10.0, 10.0) } else { (3.0, 5.0) };
-                assert!(bias.abs() <= b_max && mape <= m_max, "{raster:?} {spacing:?} r {band:?}: {bias} / {mape}");
+                for m in [section, median] {
+                    let (bias, mape) = row[m];
+                    let (b_max, m_max) = if band.0 < 2.0 { (10.0, 10.0) } else { (3.0, 5.0) };
+                    let name = MODELS[m].0;
+                    assert!(
+                        bias.abs() <= b_max && mape <= m_max,
+                        "{name} {raster:?} {spacing:?} r {band:?}: {bias} / {mape}"
+                    );
+                }
             }
             // The old model is biased low by more than the target in the thin bands.
             assert!(rows[1][old].0 < -5.0, "{raster:?} {spacing:?}: {:?}", rows[1][old]);
         }
     }
+}
+
+/// Bubbles glued to the wall (the noisy forests' radii were 17 % and 37 % high at D1 and
+/// D2 by the section model): two balls of radius 2 cells on the wall of tubes of radius
+/// 3 to 8 within two cells of the node. The section area counts them (+4.2 %); the median
+/// chord takes back about half of that (+2.2 %), since a chord through a bubble is
+/// long at one end only and a bubble lengthens a minority of them.
+#[test]
+fn bubbles_glued_to_the_wall_do_not_widen_the_vessel() {
+    let section = MODELS.iter().position(|m| m.0 == "section").unwrap();
+    let median = MODELS.iter().position(|m| m.0 == "median chords").unwrap();
+    let mut next = rng(7);
+    let cases: Vec<Case> = (0..24)
+        .map(|k| {
+            let raster = if k % 2 == 0 { Raster::Centre } else { Raster::Partial };
+            let r = 3.0 + 5.0 * next();
+            measure(&mut next, r, [1.0; 3], raster, 2)
+        })
+        .collect();
+    let all: Vec<&Case> = cases.iter().collect();
+    let (old_bias, old_mape) = errors(&all, section);
+    let (bias, mape) = errors(&all, median);
+    eprintln!("bubbles: section {old_bias:+.1} / {old_mape:.1}, median chords {bias:+.1} / {mape:.1}");
+    assert!(old_bias > 3.5, "section: {old_bias} / {old_mape}");
+    assert!(bias.abs() <= 2.5 && mape <= 2.5, "median chords: {bias} / {mape}");
 }

@@ -80,6 +80,10 @@ fn parameter_help(name: &str) -> Option<&'static str> {
             "Voxels (of the finest spacing, 0 to 1) taken off every radius, for a mask known to be wider than its \
              vessels."
         }
+        "coarse_cell" => {
+            "Start from cells of voxels this many vessel radii wide (0 to 4) instead of one node per voxel; 0 \
+             turns it off."
+        }
         "medial_weight" => {
             "Weights of the medial Laplacian, which pulls nodes to the vessel axis: 'radius' (the authors' code) or \
              'difference' (the paper's equation 3)."
@@ -104,7 +108,7 @@ fn parameter_help(name: &str) -> Option<&'static str> {
             "Anchoring weight (> 0): lower contracts faster and coarser, higher keeps detail and needs more \
              iterations."
         }
-        "cg_tol" => "Relative residual (0 to 0.5) at which each conjugate-gradient solve stops.",
+        "cg_tol" => "Relative residual (0 to 0.5) at which the conjugate-gradient solves near the stop level end; early iterations solve more loosely (at most 5e-4).",
         "cg_max_iterations" => "Cap (>= 1) on conjugate-gradient iterations per solve.",
         "max_cycle_nodes" => {
             "Cycles of fewer nodes than this (4 to 64) are knots to contract: they make up the convergence measure \
