@@ -400,8 +400,10 @@ impl Skeletonizer {
         let out = clock.time("output", || {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             let shift = p.radius_correction * c;
+            // One radius model for every output node, the routed-in ones too.
+            let model = RadiusModel::MEDIAN_CHORDS;
             let radii: Vec<f64> = pool
-                .install(|| node_radii(RadiusModel::MEDIAN_CHORDS, &g.graph, &g.positions, &g.radii, mask, spacing))
+                .install(|| node_radii(model, &g.graph, &g.positions, &g.radii, mask, spacing))
                 .into_iter()
                 .map(|r| (r - shift).max(0.0))
                 .collect();
@@ -416,11 +418,9 @@ impl Skeletonizer {
             let routed = pool.install(|| route_inside(&g.graph, &positions, &field, mask, spacing));
             let mut radii = radii;
             radii.extend(
-                pool.install(|| {
-                    routed.inserted_radii(|g, q, r| node_radii(RadiusModel::Section, g, q, r, mask, spacing))
-                })
-                .into_iter()
-                .map(|r| (r - shift).max(0.0)),
+                pool.install(|| routed.inserted_radii(|g, q, r| node_radii(model, g, q, r, mask, spacing)))
+                    .into_iter()
+                    .map(|r| (r - shift).max(0.0)),
             );
             let Routed { graph, positions, .. } = routed;
             Skeleton {
