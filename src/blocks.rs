@@ -28,6 +28,9 @@
 //! ([`crate::cycles::refine_step`]) collapses the short cycles that seams made: only
 //! cycles through a seam node are considered (every other cycle was already judged by
 //! its block, which had the mask).
+//!
+//! **Routing phase** ([`crate::blocks_route`]): after the merge, the merged edges that
+//! cross background are routed inside the mask, each by the one block that owns it.
 
 use crate::cancel::Stop;
 use crate::cycles::{refine_step, Cycle};
@@ -37,6 +40,7 @@ use crate::graph::{RunInfo, Skeleton};
 use crate::grid::{Csr, GridGraph};
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
+use crate::resample::split_long_edges;
 use crate::volume::{edt_squared, Voxel};
 use ndarray::ArrayView3;
 use petgraph::unionfind::UnionFind;
@@ -124,6 +128,28 @@ fn is_edge_offset(o: [i64; 3], connectivity: Connectivity) -> bool {
     }
 }
 
+/// Refuse a core that does not fit its block of shape `shape` at `origin` in the volume.
+pub(crate) fn check_core(shape: [usize; 3], origin: [i64; 3], core: [[usize; 2]; 3], volume: [usize; 3]) -> Result<()> {
+    for d in 0..3 {
+        let [lo, hi] = core[d];
+        let end = origin[d] + hi as i64;
+        if lo >= hi || hi > shape[d] || origin[d] < 0 || end > volume[d] as i64 {
+            return Err(Error::InvalidMask(format!(
+                "block core {core:?} at origin {origin:?} does not fit the block {shape:?} in the volume {volume:?}"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The thread pool of a block-wise phase, on the parameters' `threads`.
+pub(crate) fn block_pool(threads: usize) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| Error::ThreadPool { threads, reason: e.to_string() })
+}
+
 /// `v` less the items marked in `drop`.
 fn without<T>(v: Vec<T>, drop: &[bool]) -> Vec<T> {
     v.into_iter().zip(drop).filter(|(_, &d)| !d).map(|(x, _)| x).collect()
@@ -150,16 +176,7 @@ impl Skeletonizer {
         spacing: [f64; 3],
         stop: &Stop,
     ) -> Result<BlockPart> {
-        let shape: [usize; 3] = mask.dim().into();
-        for d in 0..3 {
-            let [lo, hi] = core[d];
-            let end = origin[d] + hi as i64;
-            if lo >= hi || hi > shape[d] || origin[d] < 0 || end > volume[d] as i64 {
-                return Err(Error::InvalidMask(format!(
-                    "block core {core:?} at origin {origin:?} does not fit the block {shape:?} in the volume {volume:?}"
-                )));
-            }
-        }
+        check_core(mask.dim().into(), origin, core, volume)?;
         let in_core = |v: [usize; 3]| (0..3).all(|d| core[d][0] <= v[d] && v[d] < core[d][1]);
         if !mask.indexed_iter().any(|((i, j, k), m)| m.is_set() && in_core([i, j, k])) {
             return Ok(BlockPart::default());
@@ -256,12 +273,7 @@ impl Skeletonizer {
     /// and sizes the halo; on the parameters' `threads`.
     pub fn largest_radius<T: Voxel>(&self, mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Result<Option<f64>> {
         crate::volume::check_spacing(spacing)?;
-        let threads = self.params().threads;
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .map_err(|e| Error::ThreadPool { threads, reason: e.to_string() })?;
-        let d = pool.install(|| edt_squared(mask, spacing))?;
+        let d = block_pool(self.params().threads)?.install(|| edt_squared(mask, spacing))?;
         Ok(d.into_iter().reduce(f32::max).map(|m| f64::from(m).sqrt()))
     }
 
@@ -449,6 +461,13 @@ impl Skeletonizer {
             }
             seam = next_seam;
             g = next;
+        }
+
+        // With a coarse start, edges longer than its cells are split as in a single run
+        // ([`crate::resample`]; the merge has no mask, so the new nodes stay on the chords).
+        if p.coarse_cell > 0.0 {
+            g = split_long_edges(g, p.coarse_cell, spacing);
+            seam.resize(g.positions.len(), false);
         }
 
         // One-node spurs that seams made: a seam leaf on a junction, within the

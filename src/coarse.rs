@@ -8,8 +8,8 @@
 //! and the radius of the voxel where the climb stops (its *centre*) is the vessel's.
 //! (The EDT at the voxel itself would be the distance to the nearest wall, small for
 //! most voxels of a thick vessel.) A voxel of vessel radius `R` lies in the box of side
-//! `coarse_cell * R` (per axis, in whole voxels, at least one) of a box grid of that
-//! side. A cell is a connected set of voxels of one box, joined by grid edges whose
+//! `coarse_cell * R` (in whole voxels of the coarsest spacing, the same number along
+//! every axis, at least one: [`cell_side`]) of a box grid of that side. A cell is a connected set of voxels of one box, joined by grid edges whose
 //! two ends climb to centres less than the smaller radius apart: voxels of two
 //! vessels that touch climb to their own vessel's ridge, so no cell spans the contact.
 //! Vessels of radius under `2 / coarse_cell` voxels keep one node per voxel.
@@ -66,12 +66,15 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
             break;
         }
     }
-    // The box of a voxel: its side per axis, then its index along each.
+    // The box of a voxel: its side (the same number of voxels along every axis), then
+    // its index along each.
+    let coarsest = spacing.iter().copied().fold(0.0, f64::max);
     let voxel = |i: usize| -> [i64; 3] { std::array::from_fn(|d| (grid.positions[i][d] / spacing[d]).round() as i64) };
     let box_of = |i: usize| -> [i64; 6] {
         let r = radii[centre[i] as usize];
         let v = voxel(i);
-        let side: [i64; 3] = std::array::from_fn(|d| ((cell * r / spacing[d]).floor() as i64).max(1));
+        let side = cell_side(cell, r, coarsest);
+        let side = [side; 3];
         [side[0], side[1], side[2], v[0].div_euclid(side[0]), v[1].div_euclid(side[1]), v[2].div_euclid(side[2])]
     };
     let same_vessel = |i: usize, j: usize| {
@@ -125,6 +128,15 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
         component: (0..cells).map(|k| grid.component[members[start[k]] as usize]).collect(),
     };
     (next, map)
+}
+
+/// The side of the cells of a vessel of radius `r`, in voxels along every axis:
+/// `cell * r` over the coarsest voxel spacing, at least one voxel. The same number of
+/// voxels per axis keeps the coarse graph a scaled-down grid graph (the Laplacians are
+/// row-normalised, so the contraction sees hops, not lengths); cells of equal physical
+/// side on an anisotropic grid would make an elongated block look short to it.
+pub fn cell_side(cell: f64, r: f64, coarsest: f64) -> i64 {
+    ((cell * r / coarsest).floor() as i64).max(1)
 }
 
 /// Merge every cell that touches only one other cell into that one (when that one

@@ -38,6 +38,7 @@
 use crate::grid::Csr;
 use crate::inside::{nearest_foreground, voxel_of};
 use crate::medial::{climb, plane_basis, Field};
+use crate::radius::{node_radii, RadiusModel};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -239,6 +240,27 @@ pub fn route_inside<T: Voxel>(
     let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
     let inserted_edt = all[old..].iter().map(|&m| field.interpolate(m) * c).collect();
     Routed { graph: Csr::from_sorted_edges(all.len(), &new_edges), positions: all, inserted, inserted_edt }
+}
+
+/// [`route_inside`] and the radii of the new nodes by `model`, less `shift` (floored
+/// at 0), as the output gives every node: the one routing of the single run's output
+/// and of a chunked run's routing phase ([`crate::blocks_route`]).
+pub fn route_with_radii<T: Voxel>(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    field: &Field,
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
+    model: RadiusModel,
+    shift: f64,
+) -> (Routed, Vec<f64>) {
+    let routed = route_inside(g, positions, field, mask, spacing);
+    let radii = routed
+        .inserted_radii(|g, q, r| node_radii(model, g, q, r, mask, spacing))
+        .into_iter()
+        .map(|r| (r - shift).max(0.0))
+        .collect();
+    (routed, radii)
 }
 
 impl Routed {

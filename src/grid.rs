@@ -214,9 +214,27 @@ impl Rows {
         [(r / n1) as isize, (r % n1) as isize, self.ks[n] as isize]
     }
 
-    /// Every node with its row, in node order.
-    fn nodes(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
-        (0..self.rows.len() - 1).flat_map(move |r| (self.rows[r]..self.rows[r + 1]).map(move |n| (r, n)))
+    /// The row of node `n` (a binary search: for a few nodes; passes over all of them
+    /// walk the rows with [`Rows::voxels`]).
+    fn row_of(&self, n: usize) -> usize {
+        self.rows.partition_point(|&s| s <= n) - 1
+    }
+
+    /// Voxel index of node `n`.
+    fn voxel_of(&self, n: usize) -> [isize; 3] {
+        self.voxel(self.row_of(n), n)
+    }
+
+    /// Voxel indices of the nodes `first..`, in node order, found by walking the rows
+    /// (no per-node row array: it would cost 8 bytes a node at the grid stage's peak).
+    fn voxels(&self, first: usize) -> impl Iterator<Item = [isize; 3]> + '_ {
+        let mut r = if first < self.len() { self.row_of(first) } else { 0 };
+        (first..self.len()).map(move |n| {
+            while self.rows[r + 1] <= n {
+                r += 1;
+            }
+            self.voxel(r, n)
+        })
     }
 }
 
@@ -235,6 +253,49 @@ fn offsets(max_sq: isize) -> Vec<[isize; 3]> {
         }
     }
     v
+}
+
+/// The graph whose row `a` is the sorted `row(a)` (`count(a)` neighbours) merged with
+/// the sorted `extra` pairs `(a, b)`, none of them already in `row(a)`; built in
+/// place, with no edge list. [`crate::Error::OutOfMemory`] if it does not fit.
+fn with_extra<I: Iterator<Item = u32>>(
+    n: usize,
+    count: impl Fn(usize) -> usize,
+    row: impl Fn(usize) -> I + Sync,
+    extra: &[(u32, u32)],
+) -> Result<Csr> {
+    let mut offsets = try_with_capacity(n + 1)?;
+    offsets.push(0);
+    let (mut acc, mut x) = (0, 0);
+    for a in 0..n {
+        let more = x + extra[x..].partition_point(|&(b, _)| b as usize == a);
+        acc += count(a) + more - x;
+        offsets.push(acc);
+        x = more;
+    }
+    let mut targets = try_filled(acc, 0u32)?;
+    for_row_blocks(&offsets, &mut targets, |block, out| {
+        let mut x = extra.partition_point(|&(a, _)| (a as usize) < block.start);
+        let mut e = 0;
+        for a in block {
+            let more = x + extra[x..].partition_point(|&(b, _)| b as usize == a);
+            let mut added = extra[x..more].iter().map(|&(_, b)| b).peekable();
+            for b in row(a) {
+                while let Some(t) = added.next_if(|&t| t < b) {
+                    out[e] = t;
+                    e += 1;
+                }
+                out[e] = b;
+                e += 1;
+            }
+            for t in added {
+                out[e] = t;
+                e += 1;
+            }
+            x = more;
+        }
+    });
+    Ok(Csr { offsets, targets })
 }
 
 /// Build the initial grid graph of `mask` (docs/method.md §1).
@@ -263,12 +324,7 @@ pub fn build<T: Voxel>(
         Connectivity::TwentySix => 3,
     };
     let base = offsets(base_sq);
-    let mut node_rows: Vec<usize> = try_with_capacity(n)?;
-    node_rows.extend(rows.nodes().map(|(r, _)| r));
-    let lookup = |a: usize, o: &[isize; 3]| {
-        let [i, j, k] = rows.voxel(node_rows[a], a);
-        rows.find(i + o[0], j + o[1], k + o[2])
-    };
+    let at = |[i, j, k]: [isize; 3], o: &[isize; 3]| rows.find(i + o[0], j + o[1], k + o[2]);
 
     // Base neighbours of every node, one slot per offset (in increasing node order),
     // `u32::MAX` where the voxel is background.
@@ -279,9 +335,9 @@ pub fn build<T: Voxel>(
         if crate::cancel::requested() {
             return;
         }
-        for (t, slots) in part.chunks_mut(f).enumerate() {
+        for (slots, v) in part.chunks_mut(f).zip(rows.voxels(c * ROW_BLOCK)) {
             for (slot, o) in slots.iter_mut().zip(&base) {
-                *slot = lookup(c * ROW_BLOCK + t, o).unwrap_or(u32::MAX);
+                *slot = at(v, o).unwrap_or(u32::MAX);
             }
         }
     });
@@ -289,7 +345,8 @@ pub fn build<T: Voxel>(
     if crate::cancel::requested() {
         return Err(crate::error::Error::Interrupted);
     }
-    let degree: Vec<usize> = near.par_chunks(f).map(|s| s.iter().filter(|&&b| b != u32::MAX).count()).collect();
+    // Base degrees are at most 26.
+    let degree: Vec<u8> = near.par_chunks(f).map(|s| s.iter().filter(|&&b| b != u32::MAX).count() as u8).collect();
     // Thin-vessel reconnection: the edge-diagonal neighbours of every node of degree
     // ≤ 2, both ways (the rule joins a pair when either end is thin), sorted.
     let mut extra: Vec<(u32, u32)> = vec![];
@@ -300,8 +357,8 @@ pub fn build<T: Voxel>(
             .into_par_iter()
             .filter(|&a| degree[a] <= 2)
             .flat_map_iter(|a| {
-                let (diagonal, lookup) = (&diagonal, &lookup);
-                diagonal.iter().filter_map(move |o| lookup(a, o)).flat_map(move |b| [(a as u32, b), (b, a as u32)])
+                let (diagonal, at, v) = (&diagonal, &at, rows.voxel_of(a));
+                diagonal.iter().filter_map(move |o| at(v, o)).flat_map(move |b| [(a as u32, b), (b, a as u32)])
             })
             .collect();
         extra.par_sort_unstable();
@@ -310,49 +367,16 @@ pub fn build<T: Voxel>(
     if crate::cancel::requested() {
         return Err(crate::error::Error::Interrupted);
     }
-    let mut counts = degree;
-    for &(a, _) in &extra {
-        counts[a as usize] += 1;
-    }
-    let mut offs = Vec::with_capacity(n + 1);
-    offs.push(0);
-    let mut acc = 0;
-    for c in &counts {
-        acc += c;
-        offs.push(acc);
-    }
-    drop(counts);
-    let mut targets = try_filled(acc, 0u32)?;
-    for_row_blocks(&offs, &mut targets, |block, out| {
-        // Each row: its base neighbours merged with its extra ones, both sorted.
-        let mut x = extra.partition_point(|&(a, _)| (a as usize) < block.start);
-        let mut e = 0;
-        for a in block {
-            let mut more = x;
-            while more < extra.len() && extra[more].0 as usize == a {
-                more += 1;
-            }
-            let mut thin = extra[x..more].iter().map(|&(_, b)| b).peekable();
-            for &b in near[a * f..(a + 1) * f].iter().filter(|&&b| b != u32::MAX) {
-                while let Some(t) = thin.next_if(|&t| t < b) {
-                    out[e] = t;
-                    e += 1;
-                }
-                out[e] = b;
-                e += 1;
-            }
-            for t in thin {
-                out[e] = t;
-                e += 1;
-            }
-            x = more;
-        }
-    });
-    drop((near, extra));
+    let mut graph = with_extra(
+        n,
+        |a| degree[a] as usize,
+        |a| near[a * f..(a + 1) * f].iter().copied().filter(|&b| b != u32::MAX),
+        &extra,
+    )?;
+    drop((near, degree, extra));
     if crate::cancel::requested() {
         return Err(crate::error::Error::Interrupted);
     }
-    let mut graph = Csr { offsets: offs, targets };
 
     // Bridge graph pieces that touch only diagonally. Candidates: 26-neighbour pairs
     // in different graph pieces, joined in (a, b) order, as a sequential scan of all
@@ -379,9 +403,9 @@ pub fn build<T: Voxel>(
         .into_par_iter()
         .filter(|&a| piece[a] != largest)
         .flat_map_iter(|a| {
-            let (all, piece, lookup) = (&all, &piece, &lookup);
+            let (all, piece, at, v) = (&all, &piece, &at, rows.voxel_of(a));
             all.iter().filter_map(move |o| {
-                let b = lookup(a, o)?;
+                let b = at(v, o)?;
                 (piece[a] != piece[b as usize]).then_some(((a as u32).min(b), (a as u32).max(b)))
             })
         })
@@ -389,13 +413,14 @@ pub fn build<T: Voxel>(
     drop(piece);
     candidates.par_sort_unstable();
     candidates.dedup();
-    let bridges: Vec<(u32, u32)> = candidates.into_iter().filter(|&(a, b)| uf.union(a, b)).collect();
+    let mut bridges: Vec<(u32, u32)> =
+        candidates.into_iter().filter(|&(a, b)| uf.union(a, b)).flat_map(|(a, b)| [(a, b), (b, a)]).collect();
     if !bridges.is_empty() {
-        let mut edges = graph.edge_list();
-        edges.extend(bridges);
-        edges.sort_unstable();
-        graph = Csr::from_sorted_edges(n, &edges);
+        // A bridge joins two pieces, so it is never an edge already.
+        bridges.sort_unstable();
+        graph = with_extra(n, |a| graph.neighbours(a).len(), |a| graph.neighbours(a).iter().copied(), &bridges)?;
     }
+    drop(bridges);
     if crate::cancel::requested() {
         return Err(crate::error::Error::Interrupted);
     }
@@ -411,14 +436,14 @@ pub fn build<T: Voxel>(
         }
         *l = label_of_root[root];
     }
-    drop(label_of_root);
+    drop((label_of_root, uf));
 
-    let voxel = |node: usize| rows.voxel(node_rows[node], node);
-    let mut positions = try_with_capacity(n)?;
-    positions.par_extend((0..n).into_par_iter().map(|node| {
-        let v = voxel(node);
-        std::array::from_fn(|d| v[d] as f64 * spacing[d])
-    }));
+    let mut positions = try_filled(n, [0.0; 3])?;
+    positions.par_chunks_mut(ROW_BLOCK).enumerate().for_each(|(c, part)| {
+        for (p, v) in part.iter_mut().zip(rows.voxels(c * ROW_BLOCK)) {
+            *p = std::array::from_fn(|d| v[d] as f64 * spacing[d]);
+        }
+    });
     assert_eq!(edt_sq.len(), n, "the EDT of another mask");
     let mut radii = try_with_capacity(n)?;
     radii.par_extend(edt_sq.par_iter().map(|&d| (d as f64).sqrt()));

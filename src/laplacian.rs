@@ -112,9 +112,10 @@ pub fn skeletal(g: &Csr, positions: &[[f64; 3]], params: &Params) -> Vec<bool> {
         .collect()
 }
 
-/// Anchoring weights `Wg_i`: `gamma`, or `eps_gamma * gamma` for skeleton-like nodes.
-pub fn anchors(skeletal: &[bool], params: &Params) -> Vec<f64> {
-    skeletal.par_iter().map(|&s| if s { params.eps_gamma * params.gamma } else { params.gamma }).collect()
+/// Anchoring weights `Wg_i`: `[gamma, eps_gamma * gamma]`, for the other nodes and
+/// for the skeleton-like ones.
+pub fn anchors(params: &Params) -> [f64; 2] {
+    [params.gamma, params.eps_gamma * params.gamma]
 }
 
 #[cfg(test)]
@@ -184,6 +185,6 @@ mod tests {
         // A fan: both neighbours on the same side.
         let fan = Csr::from_sorted_edges(3, &[(0, 1), (0, 2)]);
         assert_eq!(skeletal(&fan, &flat, &p), vec![false, false, false]);
-        assert_eq!(anchors(&[true, false], &p), vec![0.5, 0.05]);
+        assert_eq!(anchors(&p), [0.05, 0.5]);
     }
 }

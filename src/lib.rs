@@ -16,6 +16,7 @@
 //! | [`precondition`] | the assembled normal matrix and its block Gauss–Seidel preconditioner | eq. 8 |
 //! | [`decimate`] | cell-hash clustering with max-radius transfer | §III-E, §III-F |
 //! | [`cycles`] | short fundamental cycles: convergence area and refinement | §III-C, §III-G, eqs. 10–11 |
+//! | [`resample`] | with a coarse start, long edges split back to its cells' spacing (`coarse_cell`) | — |
 //! | [`inside`] | nodes on background voxels moved to the nearest vessel voxel | — |
 //! | [`medial`] | nodes moved onto the ridge of the distance transform (`medial`) | — |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
@@ -24,6 +25,7 @@
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
+//! | [`blocks_route`] | chunked runs: the routing phase, edges kept inside the mask per block | — |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
 //! | [`memory`] | the run's peak memory estimated from the mask, the `max_memory` guard | — |
 //! | [`shapes`] | analytic test volumes and the built-in demo volume | — |
@@ -42,6 +44,7 @@
 //! ```
 
 pub mod blocks;
+pub mod blocks_route;
 pub mod cancel;
 pub mod coarse;
 pub mod cycles;
@@ -59,6 +62,7 @@ pub mod params;
 pub mod pipeline;
 pub mod precondition;
 pub mod radius;
+pub mod resample;
 pub mod shapes;
 pub mod solver;
 pub mod volume;

@@ -6,7 +6,7 @@ use crate::cancel::{self, Stop};
 use crate::coarse;
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
 use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
-use crate::edges_inside::{route_inside, Routed};
+use crate::edges_inside::{route_with_radii, Routed};
 use crate::ends::extend_ends;
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
@@ -17,7 +17,8 @@ use crate::medial;
 use crate::memory;
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
-use crate::radius::{node_radii, RadiusModel};
+use crate::radius::{node_radii, OUTPUT_RADII};
+use crate::resample;
 use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
 use ndarray::ArrayView3;
@@ -389,6 +390,12 @@ impl Skeletonizer {
             stop.check()?;
         }
 
+        // With a coarse start, edges longer than its cells are split (`resample`); the
+        // old nodes keep their numbers, so the voxels' fate needs no update.
+        if p.coarse_cell > 0.0 {
+            g = clock.time("resample", || resample::split_long_edges(std::mem::take(&mut g), p.coarse_cell, spacing));
+        }
+
         // The distance transform, for the medial stage and the routing of edges.
         let field = clock.time("medial", || pool.install(|| medial::Field::new(mask, spacing)))?;
         stop.check()?;
@@ -401,7 +408,7 @@ impl Skeletonizer {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             let shift = p.radius_correction * c;
             // One radius model for every output node, the routed-in ones too.
-            let model = RadiusModel::MEDIAN_CHORDS;
+            let model = OUTPUT_RADII;
             let radii: Vec<f64> = pool
                 .install(|| node_radii(model, &g.graph, &g.positions, &g.radii, mask, spacing))
                 .into_iter()
@@ -415,13 +422,10 @@ impl Skeletonizer {
             } else {
                 std::mem::take(&mut g.positions)
             };
-            let routed = pool.install(|| route_inside(&g.graph, &positions, &field, mask, spacing));
+            let (routed, inserted) =
+                pool.install(|| route_with_radii(&g.graph, &positions, &field, mask, spacing, model, shift));
             let mut radii = radii;
-            radii.extend(
-                pool.install(|| routed.inserted_radii(|g, q, r| node_radii(model, g, q, r, mask, spacing)))
-                    .into_iter()
-                    .map(|r| (r - shift).max(0.0)),
-            );
+            radii.extend(inserted);
             let Routed { graph, positions, .. } = routed;
             Skeleton {
                 radii,

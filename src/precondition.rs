@@ -48,9 +48,13 @@ const MAX_BLOCKS: usize = 16;
 /// row by row; the forward sweeps read them column by column (once row `k` is solved,
 /// it adds its part to the rows after it), which streams the same array in the same
 /// order. Entries in other blocks are stored in both their rows. Each kind is stored on
-/// its own, row after row in increasing column order, as (column, value) pairs: every
-/// sweep streams one array front to back, skipping nothing. Values are `f32`, like the
-/// Laplacian weights they are built from; arithmetic is `f64`.
+/// its own, row after row in increasing column order: every sweep streams its arrays
+/// front to back, skipping nothing. Values are `f32`, like the Laplacian weights they
+/// are built from (the diagonal too); arithmetic is `f64`. Entries in other blocks are
+/// (column, value) pairs; the in-block upper entries, most of `M`, keep their columns
+/// as the distance `k - j` from their row, in `u16` wherever a stripe's rows reach no
+/// further (6 bytes an entry instead of 8: on the 256³ bed 20 bytes less per node at
+/// the run's peak), else in `u32`.
 ///
 /// The rows are kept in stripes of up to [`ROW_BLOCK`] rows, each built by one parallel
 /// task and never copied: no serial concatenation, and the pages of each stripe are
@@ -59,7 +63,7 @@ const MAX_BLOCKS: usize = 16;
 #[derive(Debug, Clone, Default)]
 pub struct NormalMatrix {
     /// The diagonal `D_j = M_jj` (as stored), positive.
-    pub diag: Vec<f64>,
+    pub diag: Vec<f32>,
     /// Rows per Gauss–Seidel block (the last block may be shorter).
     block: usize,
     /// The largest `k - j` of an in-block upper entry `M_jk` (0 if none).
@@ -75,11 +79,45 @@ struct Stripe {
     /// Row `t`'s entries in other blocks: `outer[outer_at[t]..outer_at[t + 1]]`.
     outer: Vec<(u32, f32)>,
     outer_at: Vec<u32>,
-    /// Row `t`'s in-block upper entries: `upper[upper_at[t]..upper_at[t + 1]]`.
-    upper: Vec<(u32, f32)>,
+    /// Row `t`'s in-block upper entries: columns `j + ahead[e]` and values
+    /// `upper[e]` for `e` in `upper_at[t]..upper_at[t + 1]`.
+    ahead: Ahead,
+    upper: Vec<f32>,
     upper_at: Vec<u32>,
     /// The largest `k - j` of its rows' upper entries.
     reach: usize,
+}
+
+/// The columns of a stripe's in-block upper entries as distances `k - j` from their
+/// row `j`: `u16` when every one fits.
+#[derive(Debug, Clone)]
+enum Ahead {
+    Near(Vec<u16>),
+    Far(Vec<u32>),
+}
+
+impl Default for Ahead {
+    fn default() -> Ahead {
+        Ahead::Far(Vec::new())
+    }
+}
+
+/// One row's in-block upper entries (see [`Ahead`]).
+#[derive(Clone, Copy)]
+enum Upper<'a> {
+    Near(&'a [u16], &'a [f32]),
+    Far(&'a [u32], &'a [f32]),
+}
+
+impl Upper<'_> {
+    /// `f(k, M_jk)` for the entries of row `j`, in increasing `k`.
+    #[inline(always)]
+    fn each(self, j: usize, mut f: impl FnMut(usize, f64)) {
+        match self {
+            Upper::Near(d, v) => d.iter().zip(v).for_each(|(&d, &m)| f(j + d as usize, m as f64)),
+            Upper::Far(d, v) => d.iter().zip(v).for_each(|(&d, &m)| f(j + d as usize, m as f64)),
+        }
+    }
 }
 
 impl Stripe {
@@ -89,20 +127,51 @@ impl Stripe {
 
     /// Append row `j` (entries in increasing column order) of a matrix in Gauss–Seidel
     /// blocks of `block` rows: its entries in other blocks and its in-block upper ones.
+    /// The columns are built as [`Ahead::Far`]; see [`Stripe::compact`].
     fn push_row(&mut self, j: usize, block: usize, row: impl Iterator<Item = (u32, f32)>) {
         let (lo, hi) = (j / block * block, (j / block + 1) * block);
+        let Ahead::Far(ahead) = &mut self.ahead else { unreachable!("a stripe is built with u32 columns") };
         for (k, v) in row {
             let col = k as usize;
             if col < lo || col >= hi {
                 self.outer.push((k, v));
             } else if col > j {
-                self.upper.push((k, v));
+                // `col - j < block`, and blocks have fewer than 2³² rows.
+                ahead.push((col - j) as u32);
+                self.upper.push(v);
                 self.reach = self.reach.max(col - j);
             }
         }
         // In range: see `stripe_shift`.
         self.outer_at.push(self.outer.len() as u32);
         self.upper_at.push(self.upper.len() as u32);
+    }
+
+    /// A copy of exactly its length, with `u16` columns if they fit (a stripe grown in
+    /// place would keep up to twice its size).
+    fn compact(&self) -> Stripe {
+        let ahead = match &self.ahead {
+            Ahead::Far(d) if self.reach <= u16::MAX as usize => Ahead::Near(d.iter().map(|&d| d as u16).collect()),
+            far => far.clone(),
+        };
+        Stripe {
+            outer: self.outer.clone(),
+            outer_at: self.outer_at.clone(),
+            ahead,
+            upper: self.upper.clone(),
+            upper_at: self.upper_at.clone(),
+            reach: self.reach,
+        }
+    }
+
+    /// Row `t`'s in-block upper entries.
+    #[inline(always)]
+    fn upper(&self, t: usize) -> Upper<'_> {
+        let at = self.upper_at[t] as usize..self.upper_at[t + 1] as usize;
+        match &self.ahead {
+            Ahead::Near(d) => Upper::Near(&d[at.clone()], &self.upper[at]),
+            Ahead::Far(d) => Upper::Far(&d[at.clone()], &self.upper[at]),
+        }
     }
 }
 
@@ -130,15 +199,17 @@ pub fn slab_order(positions: &[V3], c: f64, axes: [usize; 3]) -> Vec<u32> {
 }
 
 /// Rows per stripe of `M` as a power of two `1 << shift`: [`ROW_BLOCK`], or fewer if
-/// a stripe's entry count could then pass `u32::MAX`. A row of `M` has at most
-/// `min(n, (d + 1)²)` entries for the largest degree `d` of `graph` (its columns are
-/// its nodes within two hops), so this bounds every stripe's offsets.
+/// a stripe's entry count could then pass `u32::MAX` ([`longest_row`] entries a row).
 fn stripe_shift(graph: &Csr) -> u32 {
-    let n = graph.nodes() as u64;
-    let degree = (0..graph.nodes()).map(|i| graph.neighbours(i).len()).max().unwrap_or(0) as u64;
-    let row = n.min((degree + 1) * (degree + 1)).max(1);
-    let rows = (u32::MAX as u64 / row).clamp(1, ROW_BLOCK as u64);
+    let rows = (u32::MAX as u64 / longest_row(graph) as u64).clamp(1, ROW_BLOCK as u64);
     rows.ilog2()
+}
+
+/// A bound on the entries of a row of `M`: at most `min(n, (d + 1)²)` for the largest
+/// degree `d` of `graph` (its columns are its nodes within two hops), at least 1.
+fn longest_row(graph: &Csr) -> usize {
+    let degree = (0..graph.nodes()).map(|i| graph.neighbours(i).len()).max().unwrap_or(0);
+    graph.nodes().min((degree + 1).saturating_mul(degree + 1)).max(1)
 }
 
 /// `acc + sum_k m_jk x_k` over the given entries of a row.
@@ -153,35 +224,75 @@ fn gather(entries: &[(u32, f32)], x: &[V3], mut acc: V3) -> V3 {
     acc
 }
 
-/// Row `j` of `M`: `M_jk = sum_i (a² Ln_ij Ln_ik + b² Lm_ij Lm_ik) + [j = k] Wg_j²`,
+/// One row of `M` being summed: its entries `(column, value)` in the order of their
+/// first term, and an open-addressing table from column to place in `acc` (sized for
+/// the longest row, so a worker's scratch does not grow with the node count).
+struct RowSum {
+    acc: Vec<(u32, f64)>,
+    /// Place in `acc` plus one, 0 for free; `1 << bits` long.
+    table: Vec<u32>,
+    bits: u32,
+    /// The table slots in use, freed after each row.
+    used: Vec<u32>,
+}
+
+impl RowSum {
+    /// Scratch for rows of at most `entries` entries.
+    fn new(entries: usize) -> RowSum {
+        let size = (2 * entries).next_power_of_two().max(16);
+        RowSum { acc: Vec::with_capacity(64), table: vec![0; size], bits: size.ilog2(), used: Vec::with_capacity(64) }
+    }
+
+    /// Add `v` to the entry of column `k`. Each entry sums its terms in the order they
+    /// come, whatever the table's layout.
+    #[inline]
+    fn add(&mut self, k: u32, v: f64) {
+        let mask = self.table.len() - 1;
+        // Fibonacci hashing: the top bits of `k` times 2⁶⁴ over the golden ratio.
+        let mut h = ((k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (64 - self.bits)) as usize;
+        loop {
+            match self.table[h] {
+                0 => {
+                    self.acc.push((k, v));
+                    self.table[h] = self.acc.len() as u32;
+                    self.used.push(h as u32);
+                    return;
+                }
+                s if self.acc[s as usize - 1].0 == k => {
+                    self.acc[s as usize - 1].1 += v;
+                    return;
+                }
+                _ => h = (h + 1) & mask,
+            }
+        }
+    }
+
+    /// Empty the table for the next row, keeping `acc`.
+    fn reset(&mut self) {
+        for &h in &self.used {
+            self.table[h as usize] = 0;
+        }
+        self.used.clear();
+    }
+}
+
+/// Row `j` of `M` into `sum.acc`, sorted by column:
+/// `M_jk = sum_i (a² Ln_ij Ln_ik + b² Lm_ij Lm_ik) + [j = k] Wg_j²`,
 /// `i` over `j` and its neighbours (the rows of `L` with an entry in column `j`).
 /// Columns are numbered by `rank` (node `k` is column `rank[k]`; `None`: by node), and
 /// columns in `skip` are left out (each entry's value does not depend on which others
-/// are computed). `slot` (one per node, all 0 on entry and on return) maps a column to
-/// its place in `acc` plus one.
-fn row(
-    op: &NormalOperator<'_>,
-    j: usize,
-    rank: Option<&[u32]>,
-    skip: Range<u32>,
-    acc: &mut Vec<(u32, f64)>,
-    slot: &mut [u32],
-) {
+/// are computed).
+fn row(op: &NormalOperator<'_>, j: usize, rank: Option<&[u32]>, skip: Range<u32>, sum: &mut RowSum) {
     let g: &Csr = op.graph;
     let (ln, lm) = (op.ln, op.lm);
-    acc.clear();
+    sum.acc.clear();
     let mut add = |k: u32, v: f64| {
         let k = rank.map_or(k, |r| r[k as usize]);
-        match slot[k as usize] {
-            _ if skip.contains(&k) => {}
-            0 => {
-                acc.push((k, v));
-                slot[k as usize] = acc.len() as u32;
-            }
-            s => acc[s as usize - 1].1 += v,
+        if !skip.contains(&k) {
+            sum.add(k, v);
         }
     };
-    add(j as u32, op.anchor2[j]);
+    add(j as u32, op.anchor2(j));
     // `L_ij` for i = j (the diagonal) and for every neighbour i (row i's entry for j,
     // the twin of entry j → i), in increasing i, then row i of `L`. Every term is
     // `a² (L_ij L_ik)` (a product of two f32 values, exact in f64), so `M_jk` and
@@ -206,10 +317,8 @@ fn row(
             add(g.targets[f], term(ln.weight[f], lm.weight[f]));
         }
     }
-    for &(k, _) in acc.iter() {
-        slot[k as usize] = 0;
-    }
-    acc.sort_unstable_by_key(|&(k, _)| k);
+    sum.reset();
+    sum.acc.sort_unstable_by_key(|&(k, _)| k);
 }
 
 impl NormalMatrix {
@@ -231,17 +340,17 @@ impl NormalMatrix {
             }
             rank
         });
-        // Per worker: the column slots, a row accumulator and a stripe to build in, whose
-        // contents are then copied to vectors of exactly their length (a stripe grown
-        // in place would keep up to twice its size).
-        let scratch = PerThread::new(move || (filled(n, 0u32), Vec::with_capacity(64), Stripe::new()));
-        let mut diag = filled(n, 0.0f64);
+        // Per worker: a row's sum and a stripe to build in, whose contents are then
+        // copied ([`Stripe::compact`]).
+        let longest = longest_row(op.graph);
+        let scratch = PerThread::new(move || (RowSum::new(longest), Stripe::new()));
+        let mut diag = filled(n, 0.0f32);
         let shift = stripe_shift(op.graph);
         let stripes: Vec<Stripe> = diag
             .par_chunks_mut(1 << shift)
             .enumerate()
             .map(|(b, diag)| {
-                scratch.with(|(slot, acc, stripe)| {
+                scratch.with(|(sum, stripe)| {
                     *stripe = Stripe::new();
                     // A run asked to stop ([`crate::cancel`]) discards the matrix.
                     if crate::cancel::requested() {
@@ -252,16 +361,17 @@ impl NormalMatrix {
                         let node = order.map_or(j, |o| o[j] as usize);
                         // The in-block lower entries are not stored (the rows before
                         // hold them), so they are not computed either.
-                        row(op, node, rank.as_deref(), (j / block * block) as u32..j as u32, acc, slot);
+                        row(op, node, rank.as_deref(), (j / block * block) as u32..j as u32, sum);
+                        let acc = &sum.acc;
                         // `M` is positive semi-definite, so a non-positive diagonal
                         // means an all-zero row and column (or an anchor below f32
                         // range): give it a unit diagonal, which keeps that node in
                         // place and the preconditioner positive definite.
                         let m = acc[acc.partition_point(|e| (e.0 as usize) < j)].1 as f32;
-                        *d = if m.is_nan() || m <= 0.0 { 1.0 } else { m as f64 };
+                        *d = if m.is_nan() || m <= 0.0 { 1.0 } else { m };
                         stripe.push_row(j, block, acc.iter().map(|e| (e.0, e.1 as f32)));
                     }
-                    stripe.clone()
+                    stripe.compact()
                 })
             })
             .collect();
@@ -281,7 +391,7 @@ impl NormalMatrix {
     }
 
     /// The stripe holding row `j`, and the row's place in it.
-    #[inline]
+    #[inline(always)]
     fn stripe_of(&self, j: usize) -> (&Stripe, usize) {
         (&self.stripes[j >> self.shift], j & ((1 << self.shift) - 1))
     }
@@ -294,10 +404,10 @@ impl NormalMatrix {
     }
 
     /// Row `j`'s in-block upper entries.
-    #[inline]
-    fn upper_entries(&self, j: usize) -> &[(u32, f32)] {
+    #[inline(always)]
+    fn upper_entries(&self, j: usize) -> Upper<'_> {
         let (s, t) = self.stripe_of(j);
-        &s.upper[s.upper_at[t] as usize..s.upper_at[t + 1] as usize]
+        s.upper(t)
     }
 
     /// `y = M x`, returning the per-coordinate dot products `x · y` (summed per block in
@@ -312,11 +422,11 @@ impl NormalMatrix {
                 ys.fill([0.0; 3]);
                 // Row `j`'s in-block lower part has arrived from the rows before it.
                 for j in lo..lo + ys.len() {
-                    let own = gather(self.upper_entries(j), x, x[j].map(|v| self.diag[j] * v));
+                    let own = gather_upper(self.upper_entries(j), j, x, 0, x[j].map(|v| self.diag[j] as f64 * v), 1.0);
                     let own = gather(self.outer_entries(j), x, own);
                     let yj = &mut ys[j - lo];
                     *yj = std::array::from_fn(|c| yj[c] + own[c]);
-                    scatter(self.upper_entries(j), ys, lo, usize::MAX, x[j], 1.0);
+                    scatter(self.upper_entries(j), j, ys, lo, usize::MAX, x[j], 1.0);
                 }
                 let mut dot = [0.0; 3];
                 for (yj, xj) in ys.iter().zip(&x[lo..]) {
@@ -347,13 +457,12 @@ impl NormalMatrix {
                 // Row `j`'s in-block lower part has arrived from the rows before it; each
                 // upper entry also sends row `k` its part.
                 let mut acc = rs[j - lo];
-                for &(k, m) in self.upper_entries(j) {
-                    let (m, k) = (m as f64, k as usize);
+                self.upper_entries(j).each(j, |k, m| {
                     for c in 0..3 {
                         acc[c] += m * (pj[c] - p[k][c]);
                         rs[k - lo][c] += m * (p[k][c] - pj[c]);
                     }
-                }
+                });
                 for &(k, m) in self.outer_entries(j) {
                     let (m, pk) = (m as f64, &p[k as usize]);
                     for c in 0..3 {
@@ -387,8 +496,8 @@ impl NormalMatrix {
                 // Backward: (D + U) z = D y, i.e. z_j = y_j - (U z)_j / D_j.
                 let mut dot = [0.0; 3];
                 for j in (lo..hi).rev() {
-                    let s = gather_local(self.upper_entries(j), zs, lo, [0.0; 3], 1.0);
-                    let inv = 1.0 / self.diag[j];
+                    let s = gather_upper(self.upper_entries(j), j, zs, lo, [0.0; 3], 1.0);
+                    let inv = 1.0 / self.diag[j] as f64;
                     let zj = &mut zs[j - lo];
                     for c in 0..3 {
                         zj[c] -= s[c] * inv;
@@ -409,10 +518,10 @@ impl NormalMatrix {
         y.par_chunks_mut(bs).enumerate().for_each(|(b, ys)| {
             let lo = b * bs;
             for j in lo..lo + ys.len() {
-                let inv = 1.0 / self.diag[j];
+                let inv = 1.0 / self.diag[j] as f64;
                 let yj = ys[j - lo].map(|t| t * inv);
                 ys[j - lo] = yj;
-                scatter(self.upper_entries(j), ys, lo, usize::MAX, yj, -1.0);
+                scatter(self.upper_entries(j), j, ys, lo, usize::MAX, yj, -1.0);
             }
         });
     }
@@ -435,12 +544,12 @@ impl NormalMatrix {
                 let mut dots = [[0.0; 3]; 2];
                 for j in (lo..lo + ss.len()).rev() {
                     let t = j - lo;
-                    let dj = self.diag[j];
+                    let dj = self.diag[j] as f64;
                     for c in 0..3 {
                         xs[t][c] += step[c] * ss[t][c];
                         hs[t][c] = dj * y[j][c] + beta[c] * hs[t][c];
                     }
-                    let u = gather_local(self.upper_entries(j), ss, lo, hs[t], -1.0);
+                    let u = gather_upper(self.upper_entries(j), j, ss, lo, hs[t], -1.0);
                     let inv = 1.0 / dj;
                     ss[t] = [u[0] * inv, u[1] * inv, u[2] * inv];
                     for c in 0..3 {
@@ -499,7 +608,7 @@ impl NormalMatrix {
                     let mut dot = [0.0; 3];
                     for j in lo..lo + ys.len() {
                         let e = gather(self.outer_entries(j), s, [0.0; 3]);
-                        let dj = self.diag[j];
+                        let dj = self.diag[j] as f64;
                         let inv = 1.0 / dj;
                         let slot = (j - lo) & mask;
                         let acc = std::mem::replace(&mut pending[slot], [0.0; 3]);
@@ -510,7 +619,7 @@ impl NormalMatrix {
                             dot[c] += dj * yj[c] * yj[c];
                         }
                         let v: V3 = std::array::from_fn(|c| wj[c] - s[j][c]);
-                        scatter(self.upper_entries(j), pending, lo, mask, v, 1.0);
+                        scatter(self.upper_entries(j), j, pending, lo, mask, v, 1.0);
                     }
                     dot
                 })
@@ -549,29 +658,30 @@ impl Krylov {
     }
 }
 
-/// `acc + sign * sum_k m_jk x_k` over entries in a block whose values `x` start at row `lo`.
+/// `acc + sign * sum_k m_jk x_k` over row `j`'s in-block upper entries, whose values
+/// `x` start at row `lo`.
 #[inline]
-fn gather_local(entries: &[(u32, f32)], x: &[V3], lo: usize, mut acc: V3, sign: f64) -> V3 {
-    for &(k, m) in entries {
-        let (m, xk) = (m as f64, &x[k as usize - lo]);
+fn gather_upper(entries: Upper<'_>, j: usize, x: &[V3], lo: usize, mut acc: V3, sign: f64) -> V3 {
+    entries.each(j, |k, m| {
+        let xk = &x[k - lo];
         for c in 0..3 {
             acc[c] += sign * (m * xk[c]);
         }
-    }
+    });
     acc
 }
 
-/// `x_k += sign * m_jk v` for the given entries of row `j`, in a block whose values `x`
-/// start at row `lo`: row `k` at `(k - lo) & mask` (`usize::MAX`: the block itself; a
-/// power of two less one: a ring as wide as the rows' reach).
+/// `x_k += sign * m_jk v` for row `j`'s in-block upper entries, in a block whose values
+/// `x` start at row `lo`: row `k` at `(k - lo) & mask` (`usize::MAX`: the block itself;
+/// a power of two less one: a ring as wide as the rows' reach).
 #[inline]
-fn scatter(entries: &[(u32, f32)], x: &mut [V3], lo: usize, mask: usize, v: V3, sign: f64) {
-    for &(k, m) in entries {
-        let (m, xk) = (m as f64, &mut x[(k as usize - lo) & mask]);
+fn scatter(entries: Upper<'_>, j: usize, x: &mut [V3], lo: usize, mask: usize, v: V3, sign: f64) {
+    entries.each(j, |k, m| {
+        let xk = &mut x[(k - lo) & mask];
         for c in 0..3 {
             xk[c] += sign * (m * v[c]);
         }
-    }
+    });
 }
 
 #[cfg(test)]

@@ -44,29 +44,46 @@ pub struct NormalOperator<'a> {
     /// `alpha²`, `beta²`.
     pub a2: f64,
     pub b2: f64,
-    /// `Wg_i²` per node.
-    pub anchor2: Vec<f64>,
+    /// Which nodes are skeleton-like.
+    pub skeletal: &'a [bool],
+    /// `Wg²` of the other nodes and of the skeleton-like ones (two values, not one per
+    /// node: 8 bytes a node less while `M` is assembled, the contraction's peak).
+    pub anchor2: [f64; 2],
 }
 
 impl<'a> NormalOperator<'a> {
     /// The operator of one contraction iteration: `alpha`, `beta` from `params`, and
     /// anchoring `gamma` (`eps_gamma * gamma` for skeleton-like nodes).
-    pub fn new(graph: &'a Csr, ln: &'a Laplacian, lm: &'a Laplacian, skeletal: &[bool], params: &Params) -> Self {
-        let anchor2 = crate::laplacian::anchors(skeletal, params).into_iter().map(|w| w * w).collect();
-        NormalOperator { graph, ln, lm, a2: params.alpha * params.alpha, b2: params.beta * params.beta, anchor2 }
+    pub fn new(graph: &'a Csr, ln: &'a Laplacian, lm: &'a Laplacian, skeletal: &'a [bool], params: &Params) -> Self {
+        let anchor2 = crate::laplacian::anchors(params).map(|w| w * w);
+        NormalOperator {
+            graph,
+            ln,
+            lm,
+            a2: params.alpha * params.alpha,
+            b2: params.beta * params.beta,
+            skeletal,
+            anchor2,
+        }
+    }
+
+    /// `Wg_j²`.
+    #[inline]
+    pub fn anchor2(&self, j: usize) -> f64 {
+        self.anchor2[usize::from(self.skeletal[j])]
     }
 }
 
 /// Per-coordinate `sum_i w_i y_i[c]²`, reduced over fixed chunks.
-fn weighted_norms(w: &[f64], y: &[V3]) -> V3 {
+fn weighted_norms(w: &[f32], y: &[V3]) -> V3 {
     let parts: Vec<V3> = w
         .par_chunks(CHUNK)
         .zip(y.par_chunks(CHUNK))
         .map(|(wc, yc)| {
             let mut s = [0.0; 3];
-            for (wi, yi) in wc.iter().zip(yc) {
+            for (&wi, yi) in wc.iter().zip(yc) {
                 for c in 0..3 {
-                    s[c] += wi * yi[c] * yi[c];
+                    s[c] += wi as f64 * yi[c] * yi[c];
                 }
             }
             s
@@ -253,14 +270,17 @@ mod tests {
         p: Vec<V3>,
         ln: Laplacian,
         lm: Laplacian,
+        /// The anchored-harder nodes, and every node's anchoring `Wg` (0.5 or 0.05).
+        hard: Vec<bool>,
         w: Vec<f64>,
     }
 
     impl Problem {
-        fn new(g: Csr, p: Vec<V3>, radii: &[f64], w: Vec<f64>) -> Problem {
+        fn new(g: Csr, p: Vec<V3>, radii: &[f64], hard: Vec<bool>) -> Problem {
             let ln = l2_norm(&g, &p);
             let lm = medial(&g, radii, MedialWeight::Radius);
-            Problem { g, p, ln, lm, w }
+            let w = hard.iter().map(|&h| if h { 0.5 } else { 0.05 }).collect();
+            Problem { g, p, ln, lm, hard, w }
         }
 
         fn op(&self) -> NormalOperator<'_> {
@@ -270,7 +290,8 @@ mod tests {
                 lm: &self.lm,
                 a2: 0.25,
                 b2: 0.25,
-                anchor2: self.w.iter().map(|x| x * x).collect(),
+                skeletal: &self.hard,
+                anchor2: [0.05 * 0.05, 0.5 * 0.5],
             }
         }
 
@@ -288,8 +309,7 @@ mod tests {
         let p: Vec<V3> =
             (0..9).map(|i| [(i % 3) as f64 + 0.1 * i as f64, (i / 3) as f64, 0.3 * (i % 2) as f64 + 5.0]).collect();
         let r: Vec<f64> = (0..9).map(|i| 1.0 + (i % 4) as f64).collect();
-        let w: Vec<f64> = (0..9).map(|i| if i == 4 { 0.5 } else { 0.05 }).collect();
-        Problem::new(g, p, &r, w)
+        Problem::new(g, p, &r, (0..9).map(|i| i == 4).collect())
     }
 
     /// An `a × b × c` block of voxels with face edges, positions jittered and radii
@@ -323,8 +343,7 @@ mod tests {
             })
             .collect();
         let radii: Vec<f64> = (0..n).map(|t| 1.0 + 0.5 * (0.37 * t as f64).sin().abs()).collect();
-        let w = (0..n).map(|t| if t % 7 == 0 { 0.5 } else { 0.05 }).collect();
-        Problem::new(g, p, &radii, w)
+        Problem::new(g, p, &radii, (0..n).map(|t| t % 7 == 0).collect())
     }
 
     fn max_diff(a: &[V3], b: &[V3]) -> f64 {
@@ -375,7 +394,7 @@ mod tests {
                 let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
                 let got = stored(&m);
                 for j in 0..n {
-                    assert_eq!(m.diag[j], got[j][j]);
+                    assert_eq!(m.diag[j] as f64, got[j][j]);
                     for k in 0..n {
                         assert!((got[j][k] - want[j][k]).abs() <= 1e-6 * want[j][j], "M[{j}][{k}]");
                         assert_eq!(got[j][k].to_bits(), got[k][j].to_bits(), "M[{j}][{k}] vs M[{k}][{j}]");
@@ -400,7 +419,7 @@ mod tests {
             let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, Some(&order));
             let got = stored(&m);
             for a in 0..n {
-                assert_eq!(m.diag[a], plain[order[a] as usize][order[a] as usize]);
+                assert_eq!(m.diag[a] as f64, plain[order[a] as usize][order[a] as usize]);
                 for b in 0..n {
                     let want = plain[order[a] as usize][order[b] as usize];
                     assert_eq!(got[a][b].to_bits(), want.to_bits(), "block {bs}: M[{a}][{b}]");
@@ -550,9 +569,10 @@ mod tests {
         // The voxel grid of a thick tube starts thousands of times above the stop
         // level, so its first solve runs to `EARLY_CG_TOL` whether the user asks for
         // 1e-4 or for `EARLY_CG_TOL` itself (without the schedule, 1e-4 takes more).
+        // One node per voxel (no coarse start), the case the schedule is written for.
         let mask = crate::shapes::cylinder([40, 25, 25], 8.0);
         let run = |cg_tol: f64| {
-            let p = Params { cg_tol, ..Params::default() };
+            let p = Params { cg_tol, coarse_cell: 0.0, ..Params::default() };
             crate::Skeletonizer::new(p).unwrap().run(mask.view(), [1.0; 3], &mut |_| true).unwrap().info
         };
         let (tight, early) = (run(1e-4), run(EARLY_CG_TOL));
@@ -641,7 +661,7 @@ mod reference {
             let (un, um) = (&*un, &*um);
             y.par_iter_mut().enumerate().with_min_len(1024).for_each(|(j, yj)| {
                 let (a, b) = transposed_row(g, self.ln, self.lm, un, um, j);
-                let w2 = self.anchor2[j];
+                let w2 = self.anchor2(j);
                 for c in 0..3 {
                     yj[c] = self.a2 * a[c] + self.b2 * b[c] + w2 * x[j][c];
                 }
@@ -665,7 +685,7 @@ mod reference {
                         self.a2 * wn * wn + self.b2 * wm * wm
                     })
                     .sum();
-                *s = col + self.a2 * dn * dn + self.b2 * dm * dm + self.anchor2[j];
+                *s = col + self.a2 * dn * dn + self.b2 * dm * dm + self.anchor2(j);
             });
             sq
         }
@@ -682,7 +702,8 @@ mod reference {
             let mut um = vec![[0.0; 3]; n];
             op.apply(positions, &mut r, &mut un, &mut um);
         }
-        r.par_iter_mut().zip(positions.par_iter()).zip(op.anchor2.par_iter()).for_each(|((ri, p), w2)| {
+        r.par_iter_mut().zip(positions.par_iter()).enumerate().for_each(|(j, (ri, p))| {
+            let w2 = op.anchor2(j);
             for c in 0..3 {
                 ri[c] = -(ri[c] - w2 * p[c]);
             }

@@ -114,3 +114,52 @@ fn the_chunk_pass_finds_the_largest_radius_with_the_outside_as_background() {
     assert_eq!(sk.largest_radius(tube.view(), [3.0, 0.5, 0.5]), Ok(Some(17f64.sqrt() / 2.0)));
     assert!(sk.largest_radius(tube.view(), [0.0, 1.0, 1.0]).is_err());
 }
+
+/// The routing phase (`vesselflow::blocks_route`): a merged chord that cuts a bend is
+/// routed through the bend by the block that owns it, which asks for a larger read when
+/// its halo cannot hold the routing, and refuses an edge another block owns.
+#[test]
+fn the_routing_phase_takes_a_chord_back_inside_its_bend() {
+    use vesselflow::blocks_route::{owner_voxel, splice_routes};
+    use vesselflow::edges_inside::outside_run;
+    let mut mask = Array3::<u8>::zeros((3, 40, 40));
+    for t in 4..=30 {
+        mask[[1, t, 4]] = 1;
+        mask[[1, 30, t]] = 1;
+    }
+    let volume = [3, 40, 40];
+    let spacing = [1.0; 3];
+    let (p, q) = ([1.0, 10.0, 4.0], [1.0, 30.0, 30.0]);
+    let merged =
+        Skeleton { positions: vec![p, q], radii: vec![0.5; 2], edges: vec![[0, 1]], spacing, info: Default::default() };
+    assert!(outside_run(&mask.view(), p, q, spacing).is_some());
+    let owner = owner_voxel(p, q, spacing, volume);
+    assert_eq!(owner, [1, 20, 17]);
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    let route = |lo: [usize; 3], hi: [usize; 3], core: [[usize; 2]; 3]| {
+        let block = mask.slice(s![lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]]);
+        sk.route_block(block, lo.map(|x| x as i64), core, volume, spacing, &[0, 1], &[p, q], &[[0, 1]])
+    };
+    // A core of 16 holding the owner voxel with a halo of 2: too small, it says how much.
+    let small = route([0, 14, 14], [3, 34, 34], [[0, 3], [2, 18], [2, 18]]).unwrap();
+    let halo = small.halo.expect("a halo of 2 cannot hold the edge");
+    assert!(halo[1] > 2 && halo[2] > 2 && small.edges.is_empty());
+    // Read with that halo: routed, every edge inside, the chord gone.
+    let lo = [0, 16 - halo[1].min(16), 16 - halo[2].min(16)];
+    let hi = [3, (32 + halo[1]).min(40), (32 + halo[2]).min(40)];
+    let core = [[0, 3], [16 - lo[1], 32 - lo[1]], [16 - lo[2], 32 - lo[2]]];
+    let part = route(lo, hi, core).unwrap();
+    assert_eq!(part.halo, None);
+    assert_eq!(part.replaced, vec![[0, 1]]);
+    let out = splice_routes(merged.clone(), std::slice::from_ref(&part)).unwrap();
+    assert!(out.len() > 2 && out.radii.len() == out.len());
+    assert_eq!(out.edges.len(), out.len() - 1);
+    for &[a, b] in &out.edges {
+        assert_eq!(outside_run(&mask.view(), out.positions[a], out.positions[b], spacing), None);
+    }
+    // The same whole volume as one block: the same routed graph.
+    let whole = route([0; 3], volume, [[0, 3], [0, 40], [0, 40]]).unwrap();
+    assert_eq!(splice_routes(merged, &[whole]).unwrap().positions, out.positions);
+    // A block whose core does not hold the owner voxel refuses the edge.
+    assert!(route([0, 0, 0], [3, 40, 40], [[0, 3], [0, 16], [0, 40]]).is_err());
+}

@@ -1,7 +1,9 @@
 """Whole-organ volumes on Dask: the volume cut into blocks with a halo, each block run
 on a worker that reads it straight from the store, and the blocks' parts merged into
 one graph on the calling process (``vesselflow._core.contract_block`` and
-``merge_blocks``; the design is in the Rust module ``vesselflow::blocks``).
+``merge_blocks``; the design is in the Rust module ``vesselflow::blocks``); then the
+merged edges that cross background are routed inside the mask, each by the block that
+owns it (``route_block`` and ``splice_routes``; ``vesselflow::blocks_route``).
 
 Needs the ``dask`` extra: ``pip install vesselflow[dask]``.
 """
@@ -130,6 +132,72 @@ def _block_task(
     return "computed", out
 
 
+ROUTE_READS = 4
+"""Reads a routing task may make: the first with the block phase's halo, each next one
+with the halo the block reported it needs (``vesselflow::blocks_route``)."""
+
+
+def _owned_edges(
+    positions: NDArray[Any],
+    edges: NDArray[Any],
+    spacing: Sequence[float],
+    shape: Sequence[int],
+    size: Sequence[int],
+) -> dict[Block, tuple[NDArray[Any], NDArray[Any]]]:
+    """The merged edges of every block that owns one (the owner voxel's block), in
+    block order: the nodes they join (ascending global ids) and the edges (sorted)."""
+    if len(edges) == 0:
+        return {}
+    owner = _core.owner_voxels(positions, edges, list(spacing), list(shape)) // np.asarray(size)
+    order = np.lexsort((np.arange(len(edges)), owner[:, 2], owner[:, 1], owner[:, 0]))
+    keys, starts = np.unique(owner[order], axis=0, return_index=True)
+    out = {}
+    for key, lo, hi in zip(keys, starts, [*starts[1:], len(order)]):
+        mine = edges[np.sort(order[lo:hi])]
+        nodes = np.unique(mine).astype(np.uint32)
+        out[(int(key[0]), int(key[1]), int(key[2]))] = (nodes, mine.astype(np.uint32))
+    return out
+
+
+def _route_task(
+    source: _Source,
+    block: Block,
+    size: Sequence[int],
+    widths: Sequence[int],
+    spacing: list[float],
+    params: dict[str, Any],
+    rule: tuple[float | None, float | None],
+    nodes: NDArray[Any],
+    positions: NDArray[Any],
+    edges: NDArray[Any],
+    out: str | None,
+) -> tuple[str, dict[str, Any]]:
+    """Run the routing phase of one block on its owned edges, reading the block again
+    with a larger halo when it reports one; with ``out``, keep the part there."""
+    if out is not None and Path(out).exists():
+        with np.load(out) as f:
+            return "reused", {**{name: f[name] for name in f.files}, "halo": None}
+    sk = _core.Skeletonizer(**params)
+    halo = list(widths)
+    for _ in range(ROUTE_READS):
+        outer, core = _block_args(block, size, halo, source.shape)
+        mask = np.ascontiguousarray(_mask(source, outer, *rule))
+        origin = [s.start for s in outer]
+        part = _core.route_block(
+            sk, mask, origin, core, list(source.shape), spacing, nodes, positions, edges
+        )
+        if part["halo"] is None:
+            break
+        halo = [max(h, n) for h, n in zip(halo, part["halo"])]
+    else:
+        raise RuntimeError(f"block {block}: routing still needs a larger halo than {halo}")
+    if out is not None:
+        arrays = {k: v for k, v in part.items() if k != "halo"}
+        with atomic_files(Path(out)) as (temp,), open(temp, "wb") as f:
+            np.savez(f, **arrays)  # type: ignore[arg-type]  # numpy stubs: allow_pickle
+    return "computed", part
+
+
 def skeletonize(
     source: Any,
     spacing: Sequence[float] | float | None = None,
@@ -162,9 +230,9 @@ def skeletonize(
         A ``dask.distributed.Client``; ``None`` runs on a local cluster of one
         single-threaded worker process per core.
     workdir
-        Directory for the blocks' parts: a run interrupted, or one that lost a worker,
-        resumes there and computes only the missing blocks. ``None``: a temporary
-        directory, parts kept in memory.
+        Directory for the blocks' parts (and the routing phase's): a run interrupted, or
+        one that lost a worker, resumes there and computes only the missing blocks.
+        ``None``: a temporary directory, parts kept in memory.
     progress
         Called as ``progress(done, total)`` after every block.
     halo
@@ -180,9 +248,11 @@ def skeletonize(
     -------
     VesselGraph
         The merged graph; ``info`` holds ``blocks`` (total), ``blocks_empty`` (skipped),
-        ``blocks_computed`` and ``blocks_reused`` (found in ``workdir``), ``halo``, and
-        ``seconds``: wall time of the per-chunk pass, the block phase (reading, binarising
-        and the blocks, with the time their parts take to come back) and the merge.
+        ``blocks_computed`` and ``blocks_reused`` (found in ``workdir``), ``blocks_routed``
+        (blocks that own a merged edge) and ``routes_reused`` (their routing parts found in
+        ``workdir``), ``halo``, and ``seconds``: wall time of the per-chunk pass, the block
+        phase (reading, binarising and the blocks, with the time their parts take to come
+        back), the merge and the routing phase.
     """
     import tempfile
 
@@ -269,6 +339,37 @@ def skeletonize(
             _core.Skeletonizer(**core_params), parts, list(src.shape), list(spacing3)
         )
         seconds["merge"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        routes_dir = None
+        if parts_dir is not None:
+            routes_dir = root / "routes"
+            routes_dir.mkdir(exist_ok=True)
+        owned = _owned_edges(positions, edges, spacing3, src.shape, size)
+        futures = [
+            run.submit(
+                _route_task,
+                src,
+                b,
+                size,
+                widths,
+                list(spacing3),
+                core_params,
+                rule,
+                nodes,
+                positions[nodes],
+                own_edges,
+                None if routes_dir is None else str(routes_dir / f"{b[0]}_{b[1]}_{b[2]}.npz"),
+                pure=False,
+            )
+            for b, (nodes, own_edges) in owned.items()
+        ]
+        routed = run.gather(futures)
+        for status, _ in routed:
+            counts["routes_" + status] = counts.get("routes_" + status, 0) + 1
+        positions, radii_out, edges, _ = _core.splice_routes(
+            positions, radii_out, edges, [part for _, part in routed], list(spacing3)
+        )
+        seconds["route"] = time.perf_counter() - clock
     finally:
         if own is not None:
             own.close()
@@ -279,6 +380,8 @@ def skeletonize(
         blocks_empty=len(blocks) - len(occupied),
         blocks_computed=counts["computed"],
         blocks_reused=counts["reused"],
+        blocks_routed=len(owned),
+        routes_reused=counts.get("routes_reused", 0),
         halo=cells,
         seconds=seconds,
     )

@@ -3,11 +3,13 @@
 
 use ndarray::Array2;
 use numpy::prelude::*;
-use numpy::{PyArray1, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3};
+use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use vesselflow::blocks::{BlockPart, CellSum};
+use vesselflow::blocks_route::{owner_voxel, splice_routes as splice, RoutedPart};
+use vesselflow::graph::{RunInfo, Skeleton};
 use vesselflow::Stop;
 
 use crate::errors;
@@ -17,6 +19,9 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(contract_block, m)?)?;
     m.add_function(wrap_pyfunction!(merge_blocks, m)?)?;
     m.add_function(wrap_pyfunction!(largest_radius, m)?)?;
+    m.add_function(wrap_pyfunction!(owner_voxels, m)?)?;
+    m.add_function(wrap_pyfunction!(route_block, m)?)?;
+    m.add_function(wrap_pyfunction!(splice_routes, m)?)?;
     Ok(())
 }
 
@@ -73,6 +78,144 @@ pub fn merge_blocks<'py>(
         .detach(|| errors::no_panic(|| format!("{} blocks", parts.len()), || sk.merge_blocks(&parts, volume, spacing)))?
         .map_err(errors::core)?;
     skeleton_to_py(py, skeleton)
+}
+
+fn points(a: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<Vec<[f64; 3]>> {
+    let a = a.as_array();
+    if a.ncols() != 3 {
+        return Err(PyValueError::new_err(format!("`{name}` must have 3 columns")));
+    }
+    Ok(a.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect())
+}
+
+fn pairs_of<T: Copy + numpy::Element>(a: &PyReadonlyArray2<'_, T>, name: &str) -> PyResult<Vec<[T; 2]>> {
+    let a = a.as_array();
+    if a.ncols() != 2 {
+        return Err(PyValueError::new_err(format!("`{name}` must have 2 columns")));
+    }
+    Ok(a.rows().into_iter().map(|r| [r[0], r[1]]).collect())
+}
+
+/// The owner voxel of every edge (rows of global node ids into `positions`), for the
+/// routing phase: an `(m, 3)` array.
+#[pyfunction]
+pub fn owner_voxels<'py>(
+    py: Python<'py>,
+    positions: PyReadonlyArray2<'py, f64>,
+    edges: PyReadonlyArray2<'py, i64>,
+    spacing: [f64; 3],
+    volume: [usize; 3],
+) -> PyResult<Bound<'py, PyArray2<i64>>> {
+    let p = points(&positions, "positions")?;
+    let e = pairs_of(&edges, "edges")?;
+    let mut out = Vec::with_capacity(3 * e.len());
+    for [a, b] in e {
+        let (Some(&pa), Some(&pb)) =
+            (usize::try_from(a).ok().and_then(|a| p.get(a)), usize::try_from(b).ok().and_then(|b| p.get(b)))
+        else {
+            return Err(PyValueError::new_err(format!("edge {a}-{b} joins a node not in positions")));
+        };
+        out.extend(owner_voxel(pa, pb, spacing, volume).map(|x| x as i64));
+    }
+    let n = out.len() / 3;
+    Ok(Array2::from_shape_vec((n, 3), out).map_err(|e| PyValueError::new_err(e.to_string()))?.into_pyarray(py))
+}
+
+/// The routing phase on one block (`mask` uint8, block plus halo; see `contract_block`
+/// for `origin`, `core`, `volume`): `nodes` ascending global ids, `positions` theirs,
+/// `edges` the owned sorted pairs of global ids. Returns the routed part as a dict of
+/// arrays, or with `halo` (a list per axis) when the read was too small.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+pub fn route_block<'py>(
+    py: Python<'py>,
+    skeletonizer: PyRef<'py, PySkeletonizer>,
+    mask: PyReadonlyArray3<'py, u8>,
+    origin: [i64; 3],
+    core: [[usize; 2]; 3],
+    volume: [usize; 3],
+    spacing: [f64; 3],
+    nodes: PyReadonlyArray1<'py, u32>,
+    positions: PyReadonlyArray2<'py, f64>,
+    edges: PyReadonlyArray2<'py, u32>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let view = mask.as_array();
+    let sk = &skeletonizer.inner;
+    let nodes = nodes.as_array().to_vec();
+    let p = points(&positions, "positions")?;
+    let e = pairs_of(&edges, "edges")?;
+    let context = || format!("routing block at {origin:?}, shape {:?}, core {core:?}", view.shape());
+    let part = py
+        .detach(|| errors::no_panic(context, || sk.route_block(view, origin, core, volume, spacing, &nodes, &p, &e)))?
+        .map_err(errors::core)?;
+    let shape_err = |e: ndarray::ShapeError| PyValueError::new_err(e.to_string());
+    let d = PyDict::new(py);
+    let replaced =
+        Array2::from_shape_vec((part.replaced.len(), 2), part.replaced.as_flattened().to_vec()).map_err(shape_err)?;
+    d.set_item("replaced", replaced.into_pyarray(py))?;
+    let n = part.positions.len();
+    d.set_item(
+        "positions",
+        Array2::from_shape_vec((n, 3), part.positions.as_flattened().to_vec()).map_err(shape_err)?.into_pyarray(py),
+    )?;
+    d.set_item("radii", PyArray1::from_vec(py, part.radii))?;
+    d.set_item(
+        "edges",
+        Array2::from_shape_vec((part.edges.len(), 2), part.edges.as_flattened().to_vec())
+            .map_err(shape_err)?
+            .into_pyarray(py),
+    )?;
+    d.set_item("halo", part.halo.map(|h| h.to_vec()))?;
+    Ok(d)
+}
+
+/// The merged graph `(positions, radii, edges)` with the routed parts (dicts from
+/// `route_block`, in block order) spliced in, as `(positions, radii, edges, info)`.
+#[pyfunction]
+pub fn splice_routes<'py>(
+    py: Python<'py>,
+    positions: PyReadonlyArray2<'py, f64>,
+    radii: PyReadonlyArray1<'py, f64>,
+    edges: PyReadonlyArray2<'py, i64>,
+    parts: Vec<Bound<'py, PyDict>>,
+    spacing: [f64; 3],
+) -> PyResult<Bound<'py, PyTuple>> {
+    let get = |d: &Bound<'py, PyDict>, name: &str| {
+        d.get_item(name)?.ok_or_else(|| PyValueError::new_err(format!("routed part has no `{name}`")))
+    };
+    let mut routed = Vec::with_capacity(parts.len());
+    for d in &parts {
+        let replaced: PyReadonlyArray2<u32> = get(d, "replaced")?.extract()?;
+        let pos: PyReadonlyArray2<f64> = get(d, "positions")?.extract()?;
+        let r: PyReadonlyArray1<f64> = get(d, "radii")?.extract()?;
+        let e: PyReadonlyArray2<i64> = get(d, "edges")?.extract()?;
+        let halo: Option<Vec<usize>> = get(d, "halo")?.extract()?;
+        let halo = halo
+            .map(|h| <[usize; 3]>::try_from(h).map_err(|_| PyValueError::new_err("`halo` needs 3 values")))
+            .transpose()?;
+        routed.push(RoutedPart {
+            replaced: pairs_of(&replaced, "replaced")?,
+            positions: points(&pos, "positions")?,
+            radii: r.as_array().to_vec(),
+            edges: pairs_of(&e, "edges")?,
+            halo,
+        });
+    }
+    let negative = |_| PyValueError::new_err("edges must be node ids >= 0");
+    let merged = Skeleton {
+        positions: points(&positions, "positions")?,
+        radii: radii.as_array().to_vec(),
+        edges: pairs_of(&edges, "edges")?
+            .into_iter()
+            .map(|[a, b]| Ok([usize::try_from(a).map_err(negative)?, usize::try_from(b).map_err(negative)?]))
+            .collect::<PyResult<_>>()?,
+        spacing,
+        info: RunInfo::default(),
+    };
+    let out = py
+        .detach(|| errors::no_panic(|| format!("{} routed blocks", routed.len()), || splice(merged, &routed)))?
+        .map_err(errors::core)?;
+    skeleton_to_py(py, out)
 }
 
 fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
