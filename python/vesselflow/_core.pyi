@@ -100,6 +100,36 @@ def largest_radius(
 ) -> float | None:
     """The largest vessel radius of a chunk (physical units), or None if it is empty."""
 
+def owner_voxels(
+    positions: NDArray[np.float64],
+    edges: NDArray[np.int64],
+    spacing: Sequence[float],
+    volume: Sequence[int],
+) -> NDArray[np.int64]:
+    """The voxel that owns each edge (its midpoint's voxel, clamped to the volume)."""
+
+def route_block(
+    skeletonizer: Skeletonizer,
+    mask: NDArray[np.uint8],
+    origin: Sequence[int],
+    core: Sequence[Sequence[int]],
+    volume: Sequence[int],
+    spacing: Sequence[float],
+    nodes: NDArray[np.uint32],
+    positions: NDArray[np.float64],
+    edges: NDArray[np.uint32],
+) -> dict[str, Any]:
+    """The routing phase of one block: the routed part, or the halo it needs."""
+
+def splice_routes(
+    positions: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    edges: NDArray[np.int64],
+    parts: list[dict[str, Any]],
+    spacing: Sequence[float],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], dict[str, Any]]:
+    """The merged graph with the routed parts spliced in, and an info dict."""
+
 def merge_blocks(
     skeletonizer: Skeletonizer,
     parts: list[dict[str, NDArray[Any]]],

@@ -194,7 +194,7 @@ def _route_task(
     if out is not None:
         arrays = {k: v for k, v in part.items() if k != "halo"}
         with atomic_files(Path(out)) as (temp,), open(temp, "wb") as f:
-            np.savez(f, **arrays)  # type: ignore[arg-type]  # numpy stubs: allow_pickle
+            np.savez(f, **arrays)
     return "computed", part
 
 
