@@ -24,7 +24,6 @@ use crate::grid::Csr;
 use crate::inside::SEARCH_LIMIT;
 use crate::medial::Field;
 use crate::pipeline::Skeletonizer;
-use crate::radius::OUTPUT_RADII;
 use crate::volume::{check_spacing, Voxel};
 use ndarray::ArrayView3;
 
@@ -132,8 +131,7 @@ impl Skeletonizer {
         let g = Csr::from_sorted_edges(nodes.len(), &pairs);
         let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
         let shift = self.params().radius_correction * c;
-        let (routed, radii) =
-            pool.install(|| route_with_radii(&g, &shifted, &field, mask, spacing, OUTPUT_RADII, shift));
+        let (routed, radii) = pool.install(|| route_with_radii(&g, &shifted, &field, mask, spacing, shift));
         let old = nodes.len();
         let id = |i: u32| if (i as usize) < old { nodes[i as usize] as i64 } else { -(i as i64 - old as i64 + 1) };
         let kept = routed.graph.edge_list();

@@ -38,7 +38,7 @@
 use crate::grid::Csr;
 use crate::inside::{nearest_foreground, voxel_of};
 use crate::medial::{climb, plane_basis, Field};
-use crate::radius::{node_radii, RadiusModel};
+use crate::radius::output_radii;
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -242,24 +242,19 @@ pub fn route_inside<T: Voxel>(
     Routed { graph: Csr::from_sorted_edges(all.len(), &new_edges), positions: all, inserted, inserted_edt }
 }
 
-/// [`route_inside`] and the radii of the new nodes by `model`, less `shift` (floored
-/// at 0), as the output gives every node: the one routing of the single run's output
-/// and of a chunked run's routing phase ([`crate::blocks_route`]).
+/// [`route_inside`] and the radii of the new nodes ([`output_radii`], less `shift`), as
+/// the output gives every node: the one routing of the single run's output and of a
+/// chunked run's routing phase ([`crate::blocks_route`]).
 pub fn route_with_radii<T: Voxel>(
     g: &Csr,
     positions: &[[f64; 3]],
     field: &Field,
     mask: ArrayView3<'_, T>,
     spacing: [f64; 3],
-    model: RadiusModel,
     shift: f64,
 ) -> (Routed, Vec<f64>) {
     let routed = route_inside(g, positions, field, mask, spacing);
-    let radii = routed
-        .inserted_radii(|g, q, r| node_radii(model, g, q, r, mask, spacing))
-        .into_iter()
-        .map(|r| (r - shift).max(0.0))
-        .collect();
+    let radii = routed.inserted_radii(|g, q, r| output_radii(g, q, r, mask, spacing, shift));
     (routed, radii)
 }
 

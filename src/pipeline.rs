@@ -17,7 +17,7 @@ use crate::medial;
 use crate::memory;
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
-use crate::radius::{node_radii, OUTPUT_RADII};
+use crate::radius::output_radii;
 use crate::resample;
 use crate::solver::{self, NormalOperator, SolveStats};
 use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
@@ -407,13 +407,8 @@ impl Skeletonizer {
         let out = clock.time("output", || {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             let shift = p.radius_correction * c;
-            // One radius model for every output node, the routed-in ones too.
-            let model = OUTPUT_RADII;
-            let radii: Vec<f64> = pool
-                .install(|| node_radii(model, &g.graph, &g.positions, &g.radii, mask, spacing))
-                .into_iter()
-                .map(|r| (r - shift).max(0.0))
-                .collect();
+            // One radius rule for every output node, the routed-in ones too.
+            let radii = pool.install(|| output_radii(&g.graph, &g.positions, &g.radii, mask, spacing, shift));
             let positions = if p.anchor_ends {
                 // A moved end can stop past a background voxel the line grazed
                 // between two samples: it is kept inside once more.
@@ -423,7 +418,7 @@ impl Skeletonizer {
                 std::mem::take(&mut g.positions)
             };
             let (routed, inserted) =
-                pool.install(|| route_with_radii(&g.graph, &positions, &field, mask, spacing, model, shift));
+                pool.install(|| route_with_radii(&g.graph, &positions, &field, mask, spacing, shift));
             let mut radii = radii;
             radii.extend(inserted);
             let Routed { graph, positions, .. } = routed;

@@ -388,6 +388,20 @@ fn ball_radius<T: Voxel>(mask: &ArrayView3<'_, T>, spacing: [f64; 3], p: [f64; 3
     (volume * 0.75 / std::f64::consts::PI).cbrt()
 }
 
+/// The radii of output nodes: [`OUTPUT_RADII`] less `shift` (the radius correction in
+/// physical units), floored at 0. The one rule for every output node, in a single run
+/// and in a chunked run's routing phase.
+pub fn output_radii<T: Voxel>(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    edt_radii: &[f64],
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
+    shift: f64,
+) -> Vec<f64> {
+    node_radii(OUTPUT_RADII, g, positions, edt_radii, mask, spacing).into_iter().map(|r| (r - shift).max(0.0)).collect()
+}
+
 /// The radius of every node of the output graph `g` (positions in physical units),
 /// given each node's largest EDT value `edt_radii` (physical), by `model`.
 pub fn node_radii<T: Voxel>(
