@@ -286,13 +286,11 @@ fn row(op: &NormalOperator<'_>, j: usize, rank: Option<&[u32]>, skip: Range<u32>
     let g: &Csr = op.graph;
     let (ln, lm) = (op.ln, op.lm);
     sum.acc.clear();
-    let mut add = |k: u32, v: f64| {
-        let k = rank.map_or(k, |r| r[k as usize]);
-        if !skip.contains(&k) {
-            sum.add(k, v);
-        }
-    };
-    add(j as u32, op.anchor2(j));
+    // Node `k`'s column, unless it is skipped (then its term is not computed).
+    let column = |k: u32| Some(rank.map_or(k, |r| r[k as usize])).filter(|k| !skip.contains(k));
+    if let Some(k) = column(j as u32) {
+        sum.add(k, op.anchor2(j));
+    }
     // `L_ij` for i = j (the diagonal) and for every neighbour i (row i's entry for j,
     // the twin of entry j → i), in increasing i, then row i of `L`. Every term is
     // `a² (L_ij L_ik)` (a product of two f32 values, exact in f64), so `M_jk` and
@@ -312,9 +310,13 @@ fn row(op: &NormalOperator<'_>, j: usize, rank: Option<&[u32]>, skip: Range<u32>
             continue;
         }
         let term = |n: f32, m: f32| op.a2 * (cn * n as f64) + op.b2 * (cm * m as f64);
-        add(i as u32, term(ln.diagonal[i], lm.diagonal[i]));
+        if let Some(k) = column(i as u32) {
+            sum.add(k, term(ln.diagonal[i], lm.diagonal[i]));
+        }
         for f in g.offsets[i]..g.offsets[i + 1] {
-            add(g.targets[f], term(ln.weight[f], lm.weight[f]));
+            if let Some(k) = column(g.targets[f]) {
+                sum.add(k, term(ln.weight[f], lm.weight[f]));
+            }
         }
     }
     sum.reset();
@@ -575,7 +577,12 @@ impl NormalMatrix {
                 let lo = b * self.block;
                 let mut dot = [0.0; 3];
                 for (j, sj) in (lo..).zip(ss) {
-                    let e = gather(self.outer_entries(j), s, [0.0; 3]);
+                    // Most rows have no entry in another block: nothing to add.
+                    let outer = self.outer_entries(j);
+                    if outer.is_empty() {
+                        continue;
+                    }
+                    let e = gather(outer, s, [0.0; 3]);
                     for c in 0..3 {
                         dot[c] += sj[c] * e[c];
                     }
