@@ -301,3 +301,26 @@ fn a_junction_takes_its_inscribed_radius() {
         assert!((got - r).abs() <= 0.5, "{name}: junction radius {got}");
     }
 }
+
+/// Outside the array is background (the EDT's rule): a junction near the array's face
+/// takes the distance to the nearest voxel centre past the face, at any spacing. In a
+/// block that is all vessel, the node one voxel in from face 0 of axis 0, 2.3 voxels from
+/// face 0 of axis 1 (spacing 2 × 1 × 1.5): the nearest background centres are those at
+/// index −1 along axis 1, 3.3 away (axis 0's are 4 away). Counting only the background
+/// voxels inside the array there is none, and the node took its reach (EDT + half a
+/// voxel diagonal).
+#[test]
+fn a_junction_near_the_array_face_takes_the_distance_to_the_face() {
+    let mask = Array3::<u8>::from_elem((10, 12, 12), 1);
+    // (spacing, node, its voxel's EDT, the radius)
+    for (spacing, p, edt, want) in [([1.0; 3], [1.0, 6.0, 6.0], 2.0, 2.0), ([2.0, 1.0, 1.5], [2.0, 2.3, 7.5], 3.0, 3.3)]
+    {
+        let positions = vec![p, [p[0] + 4.0, p[1], p[2]], [p[0], p[1] + 4.0, p[2]], [p[0], p[1], p[2] + 4.0]];
+        let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (0, 3)]);
+        let edt = [edt; 4];
+        for (name, model) in MODELS.iter().skip(2) {
+            let got = node_radii(*model, &g, &positions, &edt, mask.view(), spacing)[0];
+            assert!((got - want).abs() < 1e-9, "{name} {spacing:?}: junction radius {got}, want {want}");
+        }
+    }
+}
