@@ -13,21 +13,30 @@
 //! reported, and each one decides, alone, the global cell of its node's position
 //! (`round(p / c)`, `c` the base cell): a cell key has exactly one owner per voxel, so
 //! float differences between overlapping blocks can never put a voxel in two cells.
-//! The block returns per-cell partial sums (positions, voxel count, largest radius)
-//! keyed by (block-local mask component, cell), the cell pairs joined by its grid
-//! edges between core voxels, and its core voxels on the core's faces.
+//! The block returns per-node records (position, core voxel count, largest radius)
+//! keyed by (block-local mask component, cell, block-local node): two output nodes of
+//! the block that fall in one cell stay two records. With them go the record pairs
+//! joined by its grid edges between core voxels, and its core voxels on the core's faces.
 //!
 //! **Merge phase** ([`Skeletonizer::merge_blocks`]): the face voxels of neighbouring
 //! cores are paired (26-neighbours in different blocks); those pairs join the blocks'
-//! mask components into global ones (union–find) and give the cell pairs across seams.
-//! Partial sums with equal (global component, cell) are added in block order (fixed,
-//! so the sums are the same bit for bit for any worker count or schedule). Cells become
-//! nodes at their mean position with the largest radius; cell pairs become edges, and
+//! mask components into global ones (union–find) and give the record pairs across
+//! seams. Records with equal (global component, cell) are one node, the same node seen
+//! from both sides of a seam (the flows of overlapping blocks differ by float rounding
+//! and by their cuts, so only the cell can say it) — unless a block holds two distinct
+//! nodes there: then the cell holds several nodes, the block's own, and a record of
+//! another block joins only those it touches across the seam (a face pair). So a
+//! volume in one block gives the single run's nodes, none fused. A node sits at its
+//! records' mean position weighted by voxel count, added in record order, blocks in
+//! order (fixed, so the same bit for bit for any worker count or schedule), as the first
+//! record's position plus the mean offset of the others (a node of one record keeps its
+//! position exactly); it takes the largest radius. Record pairs become edges, and
 //! corner-only contacts bridge what the edges leave apart, as [`crate::grid::build`]
 //! does, so every mask component is one graph component. Finally refinement
 //! ([`crate::cycles::refine_step`]) collapses the short cycles that seams made: only
-//! cycles through a seam node are considered (every other cycle was already judged by
-//! its block, which had the mask).
+//! cycles through a seam node are considered (every other cycle is a cycle of one
+//! block's graph, nodes and edges unchanged, already judged by its block, which had the
+//! mask).
 //!
 //! **Routing phase** ([`crate::blocks_route`]): after the merge, the merged edges that
 //! cross background are routed inside the mask, each by the one block that owns it.
@@ -74,15 +83,17 @@ pub(crate) fn follow(fate: &mut Option<VoxelFate>, map: &[u32]) {
     }
 }
 
-/// The partial sums of one cell from one block's core voxels.
+/// One output node of a block, as seen from its core voxels.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CellSum {
     /// Mask component, numbered within the block.
     pub component: u32,
     /// Global cell, `round(p / c)`.
     pub cell: [i64; 3],
-    /// Sum of the voxels' node positions (global, physical units).
-    pub sum: [f64; 3],
+    /// The node, numbered within the block (distinct nodes in one cell stay apart).
+    pub node: u32,
+    /// The node's position (global, physical units), which all its voxels share.
+    pub position: [f64; 3],
     /// Number of core voxels.
     pub count: u64,
     /// Largest output radius of the voxels' nodes.
@@ -92,7 +103,7 @@ pub struct CellSum {
 /// What the block phase returns for one block.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct BlockPart {
-    /// Per-cell partial sums, sorted by (component, cell).
+    /// Per-node records, sorted by (component, cell, node).
     pub cells: Vec<CellSum>,
     /// Pairs of `cells` indices joined by a grid edge between core voxels, sorted.
     pub edges: Vec<[u32; 2]>,
@@ -185,7 +196,7 @@ impl Skeletonizer {
         let fate = fate.ok_or_else(|| Error::Internal("a tracked run lost its voxels".into()))?;
         let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
 
-        // Core voxels: (component, cell, node position, radius), in C order.
+        // Core voxels: (component, cell, voxel id, block index), in C order.
         let mut voxels: Vec<(u32, [i64; 3], usize, [usize; 3])> = vec![];
         let mut node_of_voxel = 0usize;
         for ((i, j, k), m) in mask.indexed_iter() {
@@ -199,24 +210,21 @@ impl Skeletonizer {
             }
             node_of_voxel += 1;
         }
-        // Cells in (component, cell) order; the record of every core voxel.
+        // Records in (component, cell, node) order; the record of every core voxel.
         let mut order: Vec<usize> = (0..voxels.len()).collect();
-        order.sort_by_key(|&v| (voxels[v].0, voxels[v].1, v));
+        order.sort_by_key(|&v| (voxels[v].0, voxels[v].1, fate.node[voxels[v].2], v));
         let mut cells: Vec<CellSum> = vec![];
         let mut record = vec![u32::MAX; fate.node.len()];
         for &v in &order {
             let (component, cell, id, _) = voxels[v];
-            let node = fate.node[id] as usize;
-            let p = skeleton.positions[node];
-            if cells.last().is_none_or(|s| (s.component, s.cell) != (component, cell)) {
-                cells.push(CellSum { component, cell, sum: [0.0; 3], count: 0, radius: 0.0 });
+            let node = fate.node[id];
+            let p = skeleton.positions[node as usize];
+            if cells.last().is_none_or(|s| (s.component, s.cell, s.node) != (component, cell, node)) {
+                cells.push(CellSum { component, cell, node, position: p, count: 0, radius: 0.0 });
             }
             let s = cells.last_mut().expect("pushed above");
-            for d in 0..3 {
-                s.sum[d] += p[d];
-            }
             s.count += 1;
-            s.radius = s.radius.max(skeleton.radii[node]);
+            s.radius = s.radius.max(skeleton.radii[node as usize]);
             record[id] = (cells.len() - 1) as u32;
         }
 
@@ -356,22 +364,50 @@ impl Skeletonizer {
             .collect();
         let components = number.len();
 
-        // Nodes: records grouped by (global component, cell), summed in record order.
+        // Nodes: records with one (global component, cell) are one node, unless a block
+        // holds several there (module doc); summed in record order.
         let cell = |r: usize| parts[block_of[r]].cells[r - first[block_of[r]]].clone();
+        let key = |r: usize| (global[r], parts[block_of[r]].cells[r - first[block_of[r]]].cell);
         let mut order: Vec<usize> = (0..records).collect();
-        order.sort_by_key(|&r| (global[r], cell(r).cell, r));
+        order.sort_by_key(|&r| (key(r), r));
+        let mut same = UnionFind::<usize>::new(records);
+        let mut shared = vec![false; records];
+        for group in order.chunk_by(|&a, &b| key(a) == key(b)) {
+            let one_each = group.windows(2).all(|w| block_of[w[0]] != block_of[w[1]]);
+            for &r in group {
+                shared[r] = !one_each;
+                if one_each {
+                    same.union(group[0], r);
+                }
+            }
+        }
+        for &[a, b] in seam_edges.iter().chain(&seam_bridges) {
+            if shared[a] && key(a) == key(b) {
+                same.union(a, b);
+            }
+        }
+        // Each node is named by its first record.
+        let mut first_of = vec![usize::MAX; records];
+        for r in 0..records {
+            let root = same.find(r);
+            first_of[root] = first_of[root].min(r);
+        }
+        let first_of: Vec<usize> = (0..records).map(|r| first_of[same.find(r)]).collect();
+        order.sort_by_key(|&r| (key(r), first_of[r], r));
         let mut node_of = vec![0u32; records];
         let mut positions: Vec<[f64; 3]> = vec![];
+        let mut offsets: Vec<[f64; 3]> = vec![];
         let mut counts: Vec<u64> = vec![];
         let mut radii: Vec<f64> = vec![];
         let mut component: Vec<u32> = vec![];
         let mut blocks_of_node: Vec<(usize, bool)> = vec![];
-        let mut last: Option<(u32, [i64; 3])> = None;
+        let mut last = None;
         for &r in &order {
             let s = cell(r);
-            if last != Some((global[r], s.cell)) {
-                last = Some((global[r], s.cell));
-                positions.push([0.0; 3]);
+            if last != Some(first_of[r]) {
+                last = Some(first_of[r]);
+                positions.push(s.position);
+                offsets.push([0.0; 3]);
                 counts.push(0);
                 radii.push(0.0);
                 component.push(global[r]);
@@ -379,7 +415,7 @@ impl Skeletonizer {
             }
             let k = positions.len() - 1;
             for d in 0..3 {
-                positions[k][d] += s.sum[d];
+                offsets[k][d] += s.count as f64 * (s.position[d] - positions[k][d]);
             }
             counts[k] += s.count;
             radii[k] = radii[k].max(s.radius);
@@ -388,8 +424,8 @@ impl Skeletonizer {
             }
             node_of[r] = k as u32;
         }
-        for (q, &n) in positions.iter_mut().zip(&counts) {
-            *q = q.map(|x| x / n as f64);
+        for ((q, o), &n) in positions.iter_mut().zip(&offsets).zip(&counts) {
+            *q = std::array::from_fn(|d| q[d] + o[d] / n as f64);
         }
         let nodes = positions.len();
 
@@ -436,18 +472,11 @@ impl Skeletonizer {
         let graph = Csr::from_sorted_edges(nodes, &edges.iter().map(|&[a, b]| (a, b)).collect::<Vec<_>>());
         let mut g = NodeGraph { graph, positions, radii, component };
 
-        // Refinement of the short cycles the merge made. A cycle through a seam node is
-        // collapsed below `refine_area`; any other cycle only if it is too small to run
-        // round a hole as wide as its vessels (the area test of
-        // [`crate::inside::loop_of_the_mask`]; its blocks already judged it with the mask,
-        // and a cycle that small was made by regrouping their nodes into cells).
+        // Refinement of the short cycles the merge made: a cycle through a seam node is
+        // collapsed below `refine_area`; any other cycle is one block's, judged there.
         let max_area = p.refine_area * c * c;
         for _ in 0..p.max_refine_iterations {
-            let kept = |cycle: &Cycle| {
-                let k = cycle.nodes.len() as f64;
-                let r = cycle.nodes.iter().map(|&i| g.radii[i as usize]).sum::<f64>() / k;
-                !cycle.nodes.iter().any(|&i| seam[i as usize]) && cycle.area >= std::f64::consts::PI * (2.0 * r).powi(2)
-            };
+            let kept = |cycle: &Cycle| !cycle.nodes.iter().any(|&i| seam[i as usize]);
             let Some((positions, moved, _)) = refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &kept)
             else {
                 break;

@@ -163,3 +163,49 @@ fn the_routing_phase_takes_a_chord_back_inside_its_bend() {
     // A block whose core does not hold the owner voxel refuses the edge.
     assert!(route([0, 0, 0], [3, 40, 40], [[0, 3], [0, 16], [0, 40]]).is_err());
 }
+
+/// The merge keys nodes by cell, one owner per voxel; two distinct nodes of one block in
+/// one cell stay two nodes, and another block's record there joins the one it touches
+/// across the seam. With one record per block, a cell is one node (as at any seam).
+#[test]
+fn distinct_nodes_of_a_block_in_one_cell_stay_apart() {
+    use vesselflow::blocks::CellSum;
+    let rec = |node: u32, z: f64| CellSum {
+        component: 0,
+        cell: [0, 0, z.round() as i64],
+        node,
+        position: [0.0, 0.0, z],
+        count: 1,
+        radius: 0.5,
+    };
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    let z = |g: &Skeleton| g.positions.iter().map(|p| p[2]).collect::<Vec<_>>();
+    // One block: nodes at z = 0.8 and 1.2 share cell 1.
+    let one = BlockPart {
+        cells: vec![rec(0, 0.8), rec(1, 1.2), rec(2, 2.0)],
+        edges: vec![[0, 1], [1, 2]],
+        bridges: vec![],
+        faces: vec![],
+    };
+    let g = sk.merge_blocks(&[one], [1, 1, 3], [1.0; 3]).unwrap();
+    assert_eq!(z(&g), [0.8, 1.2, 2.0]);
+    assert_eq!(g.edges, [[0, 1], [1, 2]]);
+    // Two blocks (cores z < 2 and z >= 2): the first holds two nodes in cell 1, the
+    // second one (z = 1.375, from its voxel 2, next to the first's voxel 1 of node 1).
+    let a =
+        BlockPart { cells: vec![rec(0, 0.8), rec(1, 1.25)], edges: vec![[0, 1]], bridges: vec![], faces: vec![(1, 1)] };
+    let b = BlockPart {
+        cells: vec![rec(0, 1.375), rec(1, 3.0)],
+        edges: vec![[0, 1]],
+        bridges: vec![],
+        faces: vec![(2, 0)],
+    };
+    let g = sk.merge_blocks(&[a, b.clone()], [1, 1, 4], [1.0; 3]).unwrap();
+    assert_eq!(z(&g), [0.8, 1.3125, 3.0]);
+    assert_eq!(g.edges, [[0, 1], [1, 2]]);
+    // One node of the first block in cell 1: the cell is one node, fed by both blocks.
+    let a = BlockPart { cells: vec![rec(0, 1.25)], edges: vec![], bridges: vec![], faces: vec![(1, 0)] };
+    let g = sk.merge_blocks(&[a, b], [1, 1, 4], [1.0; 3]).unwrap();
+    assert_eq!(z(&g), [1.3125, 3.0]);
+    assert_eq!(g.edges, [[0, 1]]);
+}

@@ -132,6 +132,10 @@ def _block_task(
     return "computed", out
 
 
+PART_FORMAT = 2
+"""Version of the block parts kept in a ``workdir`` (2: one record per node of a block,
+with its position); a workdir of another version is refused like one of another set-up."""
+
 ROUTE_READS = 4
 """Reads a routing task may make: the first with the block phase's halo, each next one
 with the halo the block reported it needs (``vesselflow::blocks_route``)."""
@@ -302,7 +306,7 @@ def skeletonize(
         parts_dir = None
         if workdir is not None:
             parts_dir = root / "blocks"
-            _claim(root, src.shape, size, widths, spacing3, core_params, rule)
+            _claim(root, PART_FORMAT, src.shape, size, widths, spacing3, core_params, rule)
             parts_dir.mkdir(exist_ok=True)
         args = [_block_args(b, size, widths, src.shape) for b in occupied]
         clock = time.perf_counter()
@@ -427,7 +431,8 @@ def _claim(root: Path, *setup: Any) -> None:
         if old != digest:
             raise ValueError(
                 f"workdir {root} holds blocks of another run (other volume shape, chunks, "
-                "halo, spacing, parameters or input rule); use a new workdir"
+                "halo, spacing, parameters, input rule or vesselflow part format); "
+                "use a new workdir"
             )
         return
     with atomic_files(stamp) as (temp,):

@@ -86,6 +86,34 @@ def test_shapes_across_faces_and_corners_match_the_single_run(make: Any, client:
     assert g.info["foreground_voxels"] == int(mask.sum())
 
 
+def _canonical(g: vesselflow.VesselGraph) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions and radii in (position, radius) order, and the edges renumbered to it
+    (sorted)."""
+    order = np.lexsort((g.radii, *g.positions.T[::-1]))
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    edges = np.sort(rank[g.edges], axis=1)
+    return g.positions[order], g.radii[order], edges[np.lexsort(edges.T[::-1])]
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_one_block_gives_the_single_runs_graph(seed: int, client: Any) -> None:
+    # One block covering the volume: the merge alone differs from the single run. These
+    # beds have two output nodes in one merge cell, which a merge keyed by cell alone
+    # fused (one node fewer, its edges moved); they stay two nodes.
+    from vesselflow.synth import vascular_bed
+
+    mask = vascular_bed(48, seed)
+    g = _run(mask, client, chunks=48)
+    one = vesselflow.skeletonize(mask)
+    assert g.info["blocks_computed"] == 1
+    assert (g.n_nodes, len(g.edges)) == (one.n_nodes, len(one.edges))
+    a, b = _canonical(g), _canonical(one)
+    assert np.allclose(a[0], b[0], rtol=0, atol=1e-9)
+    assert np.allclose(a[1], b[1], rtol=0, atol=1e-9)
+    assert np.array_equal(a[2], b[2])
+
+
 def _helix(shape: tuple[int, int, int] = (64, 64, 64)) -> np.ndarray:
     """A thin tight helix (radius 4, pitch 10, tube radius 1) along axis 0, its axis
     on the corner of 4 blocks of 32: it crosses seams at every quarter turn."""

@@ -226,8 +226,9 @@ fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("component", PyArray1::from_iter(py, part.cells.iter().map(|s| s.component)))?;
     let cells = Array2::from_shape_vec((n, 3), part.cells.iter().flat_map(|s| s.cell).collect()).map_err(shape_err)?;
     d.set_item("cell", cells.into_pyarray(py))?;
-    let sums = rows(part.cells.iter().flat_map(|s| s.sum).collect(), n).map_err(shape_err)?;
-    d.set_item("sum", sums.into_pyarray(py))?;
+    d.set_item("node", PyArray1::from_iter(py, part.cells.iter().map(|s| s.node)))?;
+    let position = rows(part.cells.iter().flat_map(|s| s.position).collect(), n).map_err(shape_err)?;
+    d.set_item("position", position.into_pyarray(py))?;
     d.set_item("count", PyArray1::from_iter(py, part.cells.iter().map(|s| s.count)))?;
     d.set_item("radius", PyArray1::from_iter(py, part.cells.iter().map(|s| s.radius)))?;
     for (name, pairs) in [("edges", &part.edges), ("bridges", &part.bridges)] {
@@ -245,20 +246,28 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
     };
     let component: PyReadonlyArray1<u32> = get("component")?.extract()?;
     let cell: PyReadonlyArray2<i64> = get("cell")?.extract()?;
-    let sum: PyReadonlyArray2<f64> = get("sum")?.extract()?;
+    let position: PyReadonlyArray2<f64> = get("position")?.extract()?;
     let count: PyReadonlyArray1<u64> = get("count")?.extract()?;
     let radius: PyReadonlyArray1<f64> = get("radius")?.extract()?;
-    let (component, cell, sum, count, radius) =
-        (component.as_array(), cell.as_array(), sum.as_array(), count.as_array(), radius.as_array());
+    let node: PyReadonlyArray1<u32> = get("node")?.extract()?;
+    let (component, cell, position, count, radius, node) = (
+        component.as_array(),
+        cell.as_array(),
+        position.as_array(),
+        count.as_array(),
+        radius.as_array(),
+        node.as_array(),
+    );
     let n = component.len();
-    if cell.dim() != (n, 3) || sum.dim() != (n, 3) || count.len() != n || radius.len() != n {
+    if cell.dim() != (n, 3) || position.dim() != (n, 3) || count.len() != n || radius.len() != n || node.len() != n {
         return Err(PyValueError::new_err("block part arrays disagree in length"));
     }
     let cells = (0..n)
         .map(|i| CellSum {
             component: component[i],
             cell: std::array::from_fn(|d| cell[[i, d]]),
-            sum: std::array::from_fn(|d| sum[[i, d]]),
+            node: node[i],
+            position: std::array::from_fn(|d| position[[i, d]]),
             count: count[i],
             radius: radius[i],
         })
