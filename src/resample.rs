@@ -19,9 +19,10 @@ use crate::coarse::cell_side;
 use crate::decimate::NodeGraph;
 use crate::grid::Csr;
 
-/// Shortest limit on an edge, in voxels of the coarsest spacing: thin vessels start
-/// from one node per voxel, as without a coarse start, and their edges of a voxel or
-/// two are left as they are.
+/// Shortest limit on an edge, in voxels of the coarsest spacing, when one end is in a
+/// vessel thick enough for cells and the other is not. Edges with neither end in such
+/// a vessel are not split: those vessels start from one node per voxel, as without a
+/// coarse start (splitting them changed thin trees' graphs for no gain).
 const MIN_SIDE: i64 = 2;
 
 /// Most pieces one edge is split into (an edge is never longer than the mask, and a
@@ -30,7 +31,8 @@ const MAX_PIECES: usize = 1 << 16;
 
 /// `g` with every edge longer than the coarse cell side (`cell_side(cell, r, coarsest)`
 /// voxels of the coarsest spacing, `r` the smaller radius of its ends, at least
-/// [`MIN_SIDE`] voxels), and without a junction (degree ≥ 3) at either end, split
+/// [`MIN_SIDE`] voxels), with a side of 2 voxels or more at its larger radius (a
+/// vessel thick enough for cells), and without a junction (degree ≥ 3) at either end, split
 /// into equal pieces (module doc). Old nodes keep their numbers; new ones follow, edge by edge in
 /// edge order, and take the component of their edge.
 pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph {
@@ -44,7 +46,9 @@ pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph
         let length = (0..3).map(|d| (q[d] - p[d]).powi(2)).sum::<f64>().sqrt();
         let longest = cell_side(cell, ra.min(rb), coarsest).max(MIN_SIDE) as f64 * coarsest;
         let junction = graph.neighbours(a as usize).len() > 2 || graph.neighbours(b as usize).len() > 2;
-        let pieces = if junction { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
+        // Neither end in a vessel thick enough for cells: left as without a coarse start.
+        let thin = cell_side(cell, ra.max(rb), coarsest) < 2;
+        let pieces = if junction || thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
         let mut prev = a;
         for k in 1..pieces {
             let t = k as f64 / pieces as f64;
@@ -92,10 +96,12 @@ mod tests {
         // Spacing (0.5, 1, 2): a side is floor(0.5 * 8 / 2) = 2 voxels of 2 units.
         let s = split_long_edges(graph(vec![[0.0; 3], [0.0, 0.0, 9.0]], vec![8.0; 2], &[(0, 1)]), 0.5, [0.5, 1.0, 2.0]);
         assert_eq!(s.positions.len(), 4);
-        // Thin vessels (a side of one voxel): edges up to 2 voxels are kept, longer ones split.
-        let thin = |length: f64| graph(vec![[0.0; 3], [length, 0.0, 0.0]], vec![0.9; 2], &[(0, 1)]);
-        assert_eq!(split_long_edges(thin(2.0), 0.5, [1.0; 3]).positions.len(), 2);
-        assert_eq!(split_long_edges(thin(4.5), 0.5, [1.0; 3]).positions.len(), 4);
+        // Thin vessels (a side of one voxel at both ends): no edge is split, as without a
+        // coarse start; with one end thick enough for cells, edges over 2 voxels are.
+        let thin = |length: f64, r: f64| graph(vec![[0.0; 3], [length, 0.0, 0.0]], vec![0.9, r], &[(0, 1)]);
+        assert_eq!(split_long_edges(thin(2.0, 0.9), 0.5, [1.0; 3]).positions.len(), 2);
+        assert_eq!(split_long_edges(thin(4.5, 0.9), 0.5, [1.0; 3]).positions.len(), 2);
+        assert_eq!(split_long_edges(thin(4.5, 4.0), 0.5, [1.0; 3]).positions.len(), 4);
         // Edges at a junction are not split: a star of three 10-voxel edges stays as it is.
         let arm = |d: usize| -> [f64; 3] { std::array::from_fn(|k| if k == d { 10.0 } else { 0.0 }) };
         let star = graph(vec![[0.0; 3], arm(0), arm(1), arm(2)], vec![4.0; 4], &[(0, 1), (0, 2), (0, 3)]);

@@ -97,6 +97,23 @@ fn thin_vessels_keep_one_node_per_voxel() {
 }
 
 #[test]
+fn a_mask_too_thin_for_any_cell_gives_the_graph_of_the_grid_start() {
+    // A T of one-voxel lines (radius under 2 / 0.5 voxels) whose three tips are leaf
+    // voxels: no leaf is absorbed and no edge split, so the run is that of the grid start.
+    let mut mask = Array3::<u8>::zeros((30, 24, 12));
+    mask.slice_mut(ndarray::s![3..27, 6, 6]).fill(1);
+    mask.slice_mut(ndarray::s![15, 7..21, 6]).fill(1);
+    let (g, c, map) = coarse(&mask, 0.5);
+    let leaves = (0..g.positions.len()).filter(|&v| g.graph.neighbours(v).len() == 1).count();
+    assert!(leaves > 0, "the test needs leaf voxels");
+    assert_eq!(map, (0..g.positions.len() as u32).collect::<Vec<_>>());
+    assert_eq!((c.positions, c.graph), (g.positions, g.graph));
+    let on = run(&mask, Params { coarse_cell: 0.5, ..Params::default() });
+    let off = run(&mask, Params { coarse_cell: 0.0, ..Params::default() });
+    assert_eq!((on.positions, on.edges, on.radii), (off.positions, off.edges, off.radii));
+}
+
+#[test]
 fn a_thick_tube_has_far_fewer_nodes_each_inside_its_cell() {
     let mask = shapes::cylinder([60, 25, 25], 8.0);
     let (g, c, map) = coarse(&mask, CELL);
