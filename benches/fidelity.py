@@ -43,7 +43,8 @@ Metrics (``vesselflow.metrics``) at ``sigma`` = 2 base cells (the smallest voxel
 headline) and NetMets at 3 beside it (``--sigmas``): NetMets proper (GFNR, GFPR, CFNR,
 CFPR), the authors' VascGraph variant and DIADEM on CCO trees and real trees, radius bias and
 MAPE over graph nodes within sigma of the truth (all, and per radius band 1-2, 2-3, 3-5,
-5-10 voxels), true junctions with a graph node within sigma, the graph's cycle rank against
+5-10 voxels), true junctions with a graph node and with a graph junction (degree >= 3)
+within sigma, the graph's cycle rank against
 the first Betti number of the noise-free mask, edge length outside the mask, nodes outside
 the mask dilated by one voxel, and graph components against 26-connected mask components.
 
@@ -186,13 +187,14 @@ METRIC_LABELS = {
     "bias": "radius bias (%)",
     "mape_norm": "MAP, normalised (%) ↓",
     "junctions": "junctions found ↑",
+    "junction_nodes": "junctions met by a junction ↑",
     "loop_error": "loop error (% of clean-mask loops) ↓",
     "edge_outside": "edge length outside mask (%) ↓",
     "nodes_outside": "nodes outside dilated mask ↓",
     "components_equal": "components 1:1 ↑",
     "seconds": "time (s) ↓",
 }
-HIGHER_IS_BETTER = {"diadem", "junctions", "components_equal"}
+HIGHER_IS_BETTER = {"diadem", "junctions", "junction_nodes", "components_equal"}
 #: Radius bands (voxels) of the per-band table.
 BANDS = tuple(f"{lo:g}-{hi:g}" for lo, hi in metrics.RADIUS_BANDS)
 
@@ -393,6 +395,7 @@ def score(case: Case, graph: VesselGraph, sigmas: Sequence[float]) -> dict[str, 
         return row
     junctions = metrics.junction_recall(case.truth, graph, sigma)
     row.update(truth_junctions=junctions["n_junctions"], junctions=junctions["recall"])
+    row["junction_nodes"] = junctions_met(case.truth, graph, sigma)
     row["truth_cycles"] = case.truth.n_edges - case.truth.n_nodes + components(case.truth)
     if graph.n_nodes:
         err = metrics.radius_error(case.truth, graph, sigma)
@@ -419,6 +422,19 @@ def score(case: Case, graph: VesselGraph, sigmas: Sequence[float]) -> dict[str, 
             z_axis=None,
         )
     return row
+
+
+def junctions_met(truth: VesselGraph, graph: VesselGraph, sigma: float) -> float:
+    """Share of true junctions (truth nodes of degree >= 3) with a graph junction (a graph
+    node of degree >= 3) within ``sigma``: stricter than ``metrics.junction_recall``, which
+    counts any graph node (a junction one node along a branch passes it)."""
+    degree = np.bincount(graph.edges.ravel(), minlength=graph.n_nodes)
+    nodes = graph.positions[degree >= 3]
+    return metrics.junction_recall(
+        truth,
+        VesselGraph(nodes, graph.radii[degree >= 3], np.empty((0, 2), np.int64), graph.spacing),
+        sigma,
+    )["recall"]
 
 
 def components(graph: VesselGraph) -> int:
@@ -559,6 +575,7 @@ HEADLINE = (
     ("loops", "cycles / clean-mask loops", "loops", 0),
     ("loop_error", "loop error % ↓", "loop_error", 0),
     ("junctions", "junctions found % ↑", "percent", 0),
+    ("junction_nodes", "met by a junction % ↑", "percent", 0),
     ("edge_outside", "edge length outside % ↓", "mean", 2),
     ("nodes_outside", "cases with a node outside dilated mask ↓", "count_positive", 0),
     ("seconds", "time s", "mean", 2),
@@ -712,7 +729,7 @@ def bootstrap_ci(values: np.ndarray, seed: int = 0) -> tuple[float, float]:
 def spread_table(df: pd.DataFrame, method: str) -> str:
     """Mean ± sd over cases and the 95 % bootstrap interval of the mean, per family (levels
     pooled) and per family and level: the noise floor a change must beat."""
-    keys = ("gfnr", "gfpr", "cfnr", "cfpr", "mape", "junctions", "edge_outside")
+    keys = ("gfnr", "gfpr", "cfnr", "cfpr", "mape", "junctions", "junction_nodes", "edge_outside")
     lines = [
         "| family | cases | " + " | ".join(METRIC_LABELS[k] for k in keys) + " |",
         "|---|---:|" + "---:|" * len(keys),
@@ -926,7 +943,8 @@ COLUMN_NOTES = (
     "closed voxel cubes, plus 26-components and enclosed cavities: "
     "`vesselflow.metrics.topology`); loop error = sum of |cycles - clean-mask loops| over "
     "the cases as a percentage of the summed clean-mask loops; junctions found = truth nodes "
-    "of degree >= 3 with a graph node within sigma; edge length outside = share of the "
+    "of degree >= 3 with a graph node within sigma, met by a junction = with a graph node of "
+    "degree >= 3 within sigma; edge length outside = share of the "
     "graph's edge length over background voxels of the input mask; the last count = volumes "
     "where a graph node lies outside the input mask dilated by one voxel (the invariant of "
     "`tests/method.rs`). Best of each family in bold."

@@ -39,6 +39,7 @@ use crate::grid::Csr;
 use crate::inside::{nearest_foreground, voxel_of};
 use crate::medial::{climb, plane_basis, Field};
 use crate::radius::output_radii;
+use crate::vec3::{norm, sub};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -60,14 +61,6 @@ pub struct Routed {
     /// The distance transform at every new node, physical units (the first guess of
     /// the radius models, like the clusters' EDT radii of the old nodes).
     pub inserted_edt: Vec<f64>,
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn norm(a: [f64; 3]) -> f64 {
-    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
 }
 
 /// The background samples of the segment `p`–`q`: the first and last, their count,

@@ -65,6 +65,7 @@ pub mod radius;
 pub mod resample;
 pub mod shapes;
 pub mod solver;
+mod vec3;
 pub mod volume;
 
 pub use cancel::Stop;

@@ -99,6 +99,7 @@
 
 use crate::grid::Csr;
 use crate::medial::plane_basis;
+use crate::vec3::{dot, sub, unit};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -130,19 +131,6 @@ pub const OUTPUT_RADII: RadiusModel = RadiusModel::MEDIAN_CHORDS;
 impl RadiusModel {
     /// The pipeline's model: the section area scaled by the median chord.
     pub const MEDIAN_CHORDS: RadiusModel = RadiusModel::Chords { quantile: 0.5 };
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn unit(d: [f64; 3]) -> Option<[f64; 3]> {
-    let n = dot(d, d).sqrt();
-    (n > 0.0).then(|| [d[0] / n, d[1] / n, d[2] / n])
 }
 
 /// The slab along the direction `t`: `(middle, half)`, in physical units along `t`
