@@ -85,7 +85,7 @@ pub(crate) fn follow(fate: &mut Option<VoxelFate>, map: &[u32]) {
 
 /// One output node of a block, as seen from its core voxels.
 #[derive(Debug, Clone, PartialEq)]
-pub struct CellSum {
+pub struct NodeRecord {
     /// Mask component, numbered within the block.
     pub component: u32,
     /// Global cell, `round(p / c)`.
@@ -104,7 +104,7 @@ pub struct CellSum {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct BlockPart {
     /// Per-node records, sorted by (component, cell, node).
-    pub cells: Vec<CellSum>,
+    pub cells: Vec<NodeRecord>,
     /// Pairs of `cells` indices joined by a grid edge between core voxels, sorted.
     pub edges: Vec<[u32; 2]>,
     /// Pairs of `cells` indices of 26-neighbouring core voxels not in `edges`, sorted.
@@ -213,14 +213,14 @@ impl Skeletonizer {
         // Records in (component, cell, node) order; the record of every core voxel.
         let mut order: Vec<usize> = (0..voxels.len()).collect();
         order.sort_by_key(|&v| (voxels[v].0, voxels[v].1, fate.node[voxels[v].2], v));
-        let mut cells: Vec<CellSum> = vec![];
+        let mut cells: Vec<NodeRecord> = vec![];
         let mut record = vec![u32::MAX; fate.node.len()];
         for &v in &order {
             let (component, cell, id, _) = voxels[v];
             let node = fate.node[id];
             let p = skeleton.positions[node as usize];
             if cells.last().is_none_or(|s| (s.component, s.cell, s.node) != (component, cell, node)) {
-                cells.push(CellSum { component, cell, node, position: p, count: 0, radius: 0.0 });
+                cells.push(NodeRecord { component, cell, node, position: p, count: 0, radius: 0.0 });
             }
             let s = cells.last_mut().expect("pushed above");
             s.count += 1;

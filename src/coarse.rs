@@ -106,7 +106,7 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.
     let mut wide = vec![false; cells as usize];
     for i in 0..n {
-        wide[map[i] as usize] |= box_of(i)[0] > 1;
+        wide[map[i] as usize] |= has_cells(cell, radii[centre[i] as usize], coarsest);
     }
     let cells = absorb_leaves(g, &mut map, &wide);
     let (start, members) = members_by_cluster(&map, cells);
@@ -142,6 +142,13 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
 /// side on an anisotropic grid would make an elongated block look short to it.
 pub fn cell_side(cell: f64, r: f64, coarsest: f64) -> i64 {
     ((cell * r / coarsest).floor() as i64).max(1)
+}
+
+/// Whether a vessel of radius `r` is thick enough for cells (a side of two voxels or
+/// more): thinner vessels keep one node per voxel, their leaves and edges as in the
+/// grid start.
+pub fn has_cells(cell: f64, r: f64, coarsest: f64) -> bool {
+    cell_side(cell, r, coarsest) > 1
 }
 
 /// Merge every cell that touches only one other cell into that one (when that one

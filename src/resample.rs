@@ -15,7 +15,7 @@
 //! then moves them, like every other node, onto the ridge of the distance transform, so
 //! the new nodes sample the vessel's own centreline, not the chord.
 
-use crate::coarse::cell_side;
+use crate::coarse::{cell_side, has_cells};
 use crate::decimate::NodeGraph;
 use crate::grid::Csr;
 
@@ -47,7 +47,7 @@ pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph
         let longest = cell_side(cell, ra.min(rb), coarsest).max(MIN_SIDE) as f64 * coarsest;
         let junction = graph.neighbours(a as usize).len() > 2 || graph.neighbours(b as usize).len() > 2;
         // Neither end in a vessel thick enough for cells: left as without a coarse start.
-        let thin = cell_side(cell, ra.max(rb), coarsest) < 2;
+        let thin = !has_cells(cell, ra.max(rb), coarsest);
         let pieces = if junction || thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
         let mut prev = a;
         for k in 1..pieces {

@@ -169,8 +169,8 @@ fn the_routing_phase_takes_a_chord_back_inside_its_bend() {
 /// across the seam. With one record per block, a cell is one node (as at any seam).
 #[test]
 fn distinct_nodes_of_a_block_in_one_cell_stay_apart() {
-    use vesselflow::blocks::CellSum;
-    let rec = |node: u32, z: f64| CellSum {
+    use vesselflow::blocks::NodeRecord;
+    let rec = |node: u32, z: f64| NodeRecord {
         component: 0,
         cell: [0, 0, z.round() as i64],
         node,

@@ -7,7 +7,7 @@ use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyAr
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
-use vesselflow::blocks::{BlockPart, CellSum};
+use vesselflow::blocks::{BlockPart, NodeRecord};
 use vesselflow::blocks_route::{owner_voxel, splice_routes as splice, RoutedPart};
 use vesselflow::graph::{RunInfo, Skeleton};
 use vesselflow::Stop;
@@ -263,7 +263,7 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
         return Err(PyValueError::new_err("block part arrays disagree in length"));
     }
     let cells = (0..n)
-        .map(|i| CellSum {
+        .map(|i| NodeRecord {
             component: component[i],
             cell: std::array::from_fn(|d| cell[[i, d]]),
             node: node[i],
