@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -42,14 +41,15 @@ from vesselflow.metrics import netmets
 from vesselflow.synth import vascular_bed
 
 SINGLE = """
-import json, resource, sys, time
+import json, sys, time
 import numpy as np, zarr, vesselflow
 mask = np.asarray(zarr.open_array(sys.argv[1], mode="r")[...])
 t = time.perf_counter()
 g = vesselflow.skeletonize(mask, **json.loads(sys.argv[3]))
 wall = time.perf_counter() - t
 np.savez(sys.argv[2], positions=g.positions, radii=g.radii, edges=g.edges)
-print(json.dumps({"wall": wall, "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+hwm = [int(x.split()[1]) * 1024 for x in open("/proc/self/status") if x.startswith("VmHWM:")]
+print(json.dumps({"wall": wall, "peak": hwm[0]}))
 """
 
 
@@ -60,7 +60,11 @@ def _topology(g: vesselflow.VesselGraph) -> tuple[int, int]:
 
 
 def _peak() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """This process's peak RSS: ``VmHWM``, not ``ru_maxrss``, which Linux carries over
+    exec from the forked parent (a worker or the single run would report this script's
+    own RSS, the volumes it holds, whenever that is larger)."""
+    with open("/proc/self/status") as f:
+        return next(int(x.split()[1]) * 1024 for x in f if x.startswith("VmHWM:"))
 
 
 def _cluster(workers: int) -> tuple[Any, Any]:
