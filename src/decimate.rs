@@ -9,7 +9,7 @@
 //! New nodes are numbered in key order: component, then cell in C order.
 
 use crate::error::{Error, Result};
-use crate::grid::{filled, Csr, HalfCsr, ROW_BLOCK};
+use crate::grid::{filled, Csr, ROW_BLOCK};
 use rayon::prelude::*;
 
 /// Half-range of a packed cell coordinate: cells must lie in `(-2^20, 2^20)`.
@@ -22,91 +22,6 @@ pub struct NodeGraph {
     pub positions: Vec<[f64; 3]>,
     pub radii: Vec<f64>,
     pub component: Vec<u32>,
-}
-
-/// The parts of a [`NodeGraph`] that only the decimation after the solve needs (its
-/// graph, radii and components), packed without loss while the solve's matrix and
-/// vectors are alive, the contraction's peak: the graph as its upper half
-/// ([`HalfCsr`]), each radius as the `f32` square it is the root of (every radius of
-/// the contraction is the root of a squared distance-transform value, or the largest
-/// of such roots), and the components as runs of equal labels (decimated nodes come
-/// in component order). A part that would not come back bit for bit stays as it is.
-/// On the 256³ bed this is 21 bytes per node less at the solve (see [`crate::memory`]).
-#[derive(Debug)]
-pub struct Parked {
-    graph: Option<HalfCsr>,
-    radii: Radii,
-    component: Labels,
-}
-
-#[derive(Debug)]
-enum Radii {
-    Squares(Vec<f32>),
-    Plain(Vec<f64>),
-}
-
-#[derive(Debug)]
-enum Labels {
-    /// `(first node, label)` of every run of equal labels, and the node count.
-    Runs(Vec<(u32, u32)>, usize),
-    Plain(Vec<u32>),
-}
-
-impl Parked {
-    /// Take `g`'s radii and components (packed); its graph stays until
-    /// [`Parked::take_graph`].
-    pub fn take(g: &mut NodeGraph) -> Parked {
-        let radii = std::mem::take(&mut g.radii);
-        let squares: Vec<f32> = radii.par_iter().map(|&r| (r * r) as f32).collect();
-        let exact = squares.par_iter().zip(&radii).all(|(&s, &r)| (s as f64).sqrt().to_bits() == r.to_bits());
-        let radii = if exact { Radii::Squares(squares) } else { Radii::Plain(radii) };
-        let labels = std::mem::take(&mut g.component);
-        // Runs are kept while they take at most half the bytes of the labels.
-        let mut runs: Vec<(u32, u32)> = vec![];
-        let mut fits = true;
-        for (i, &l) in labels.iter().enumerate() {
-            if runs.last().is_none_or(|r| r.1 != l) {
-                fits = 4 * (runs.len() + 1) <= labels.len();
-                if !fits {
-                    break;
-                }
-                runs.push((i as u32, l));
-            }
-        }
-        let component = if fits { Labels::Runs(runs, labels.len()) } else { Labels::Plain(labels) };
-        Parked { graph: None, radii, component }
-    }
-
-    /// Take `g`'s graph too, as its upper half (it stays whole in the rare graph whose
-    /// half has 2³² entries or more).
-    pub fn take_graph(&mut self, g: &mut NodeGraph) {
-        if let Some(half) = g.graph.upper_half() {
-            self.graph = Some(half);
-            g.graph = Csr::default();
-        }
-    }
-
-    /// Put everything back into `g`, exactly as it was taken.
-    pub fn restore(self, g: &mut NodeGraph) {
-        if let Some(half) = self.graph {
-            g.graph = half.to_full();
-        }
-        g.radii = match self.radii {
-            Radii::Squares(s) => s.into_par_iter().map(|s| (s as f64).sqrt()).collect(),
-            Radii::Plain(r) => r,
-        };
-        g.component = match self.component {
-            Labels::Runs(runs, n) => {
-                let mut labels = Vec::with_capacity(n);
-                for (k, &(first, l)) in runs.iter().enumerate() {
-                    let end = runs.get(k + 1).map_or(n, |r| r.0 as usize);
-                    labels.resize(labels.len() + (end - first as usize), l);
-                }
-                labels
-            }
-            Labels::Plain(l) => l,
-        };
-    }
 }
 
 /// The cell of a position: `round(p / c)` per axis.
@@ -361,32 +276,6 @@ mod tests {
             let (start, members) = members_by_cluster(&map, clusters);
             let (want, _) = crate::test_graph(clusters, edges.iter().map(|&(a, b)| (map[a as usize], map[b as usize])));
             assert_eq!(quotient(&g, &map, &start, &members), want, "n = {n}");
-        }
-    }
-
-    #[test]
-    fn parked_parts_come_back_bit_for_bit() {
-        let mut rnd = crate::test_rng(3);
-        let n = 5000;
-        let (graph, _) = crate::test_graph(n, (0..3 * n).map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32)));
-        let roots: Vec<f64> = (0..n).map(|i| ((1 + i % 97) as f32 * 0.37f32) as f64).map(f64::sqrt).collect();
-        let mut other = roots.clone();
-        other[17] = 1.0 + f64::EPSILON;
-        let sorted: Vec<u32> = (0..n as u32).map(|i| i / 1000).collect();
-        let mixed: Vec<u32> = (0..n as u32).map(|i| i % 3).collect();
-        for (radii, component, squares, runs) in [(roots, sorted, true, true), (other, mixed, false, false)] {
-            let g = NodeGraph { graph: graph.clone(), positions: vec![[0.0; 3]; n], radii, component };
-            let mut h = g.clone();
-            let mut parked = Parked::take(&mut h);
-            parked.take_graph(&mut h);
-            // Packed: a radius that is no f32 square's root, or labels in short runs, stay.
-            assert_eq!(matches!(parked.radii, Radii::Squares(_)), squares);
-            assert_eq!(matches!(parked.component, Labels::Runs(..)), runs);
-            assert!(h.graph.targets.is_empty() && h.radii.is_empty() && h.component.is_empty());
-            parked.restore(&mut h);
-            assert_eq!(h.graph, g.graph);
-            assert!(h.radii.iter().zip(&g.radii).all(|(a, b)| a.to_bits() == b.to_bits()));
-            assert_eq!(h.component, g.component);
         }
     }
 

@@ -82,87 +82,6 @@ impl Csr {
             .flat_map(|a| self.neighbours(a).iter().filter(move |&&b| b as usize > a).map(move |&b| (a as u32, b)))
             .collect()
     }
-
-    /// The upper half ([`HalfCsr`]), or `None` if it would have 2³² entries or more.
-    pub fn upper_half(&self) -> Option<HalfCsr> {
-        let n = self.nodes();
-        if self.offsets.is_empty() {
-            return Some(HalfCsr::default());
-        } else if self.edges() >= u32::MAX as usize {
-            return None;
-        }
-        // Rows have no self-loop: the upper part of row `i` follows its entries `< i`.
-        let first = |i: usize| self.offsets[i] + self.neighbours(i).partition_point(|&j| (j as usize) < i);
-        let count: Vec<u32> = (0..n).into_par_iter().map(|i| (self.offsets[i + 1] - first(i)) as u32).collect();
-        let mut offsets = Vec::with_capacity(n + 1);
-        offsets.push(0u32);
-        for c in count {
-            offsets.push(offsets[offsets.len() - 1] + c);
-        }
-        let mut targets = filled(offsets[n] as usize, 0u32);
-        let blocks: Vec<usize> = (0..n).step_by(ROW_BLOCK).chain([n]).collect();
-        let mut parts = Vec::with_capacity(blocks.len());
-        let mut rest = &mut targets[..];
-        for w in blocks.windows(2) {
-            let (head, tail) = rest.split_at_mut((offsets[w[1]] - offsets[w[0]]) as usize);
-            parts.push((w[0]..w[1], head));
-            rest = tail;
-        }
-        parts.into_par_iter().for_each(|(rows, part)| {
-            let mut t = 0;
-            for i in rows {
-                let upper = &self.targets[first(i)..self.offsets[i + 1]];
-                part[t..t + upper.len()].copy_from_slice(upper);
-                t += upper.len();
-            }
-        });
-        Some(HalfCsr { offsets, targets })
-    }
-}
-
-/// The upper half of a [`Csr`]: each edge once, in the row of its smaller end, with
-/// `u32` offsets, so about half the bytes (15 instead of 29 per node of a 6-connected
-/// grid graph). The contraction keeps its graph so while the solve's matrix and
-/// vectors are alive ([`crate::decimate::Parked`]).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct HalfCsr {
-    offsets: Vec<u32>,
-    targets: Vec<u32>,
-}
-
-impl HalfCsr {
-    /// The whole graph again, exactly the [`Csr`] it was taken from: row `i` holds its
-    /// neighbours below `i` (found in the rows before it, in increasing order), then its
-    /// own upper row.
-    pub fn to_full(&self) -> Csr {
-        if self.offsets.is_empty() {
-            return Csr::default();
-        }
-        let n = self.offsets.len() - 1;
-        let upper = |i: usize| &self.targets[self.offsets[i] as usize..self.offsets[i + 1] as usize];
-        let mut below = filled(n, 0usize);
-        for &j in &self.targets {
-            below[j as usize] += 1;
-        }
-        let mut offsets = Vec::with_capacity(n + 1);
-        offsets.push(0usize);
-        for i in 0..n {
-            offsets.push(offsets[i] + below[i] + upper(i).len());
-        }
-        // `below[i]` becomes the next free entry of row `i`'s lower part.
-        below.par_iter_mut().zip(&offsets[..n]).for_each(|(b, &o)| *b = o);
-        let mut targets = filled(2 * self.targets.len(), 0u32);
-        for i in 0..n {
-            let row = upper(i);
-            let at = below[i];
-            targets[at..at + row.len()].copy_from_slice(row);
-            for &j in row {
-                targets[below[j as usize]] = i as u32;
-                below[j as usize] += 1;
-            }
-        }
-        Csr { offsets, targets }
-    }
 }
 
 /// Run `f(rows, entries)` in parallel over blocks of [`ROW_BLOCK`] rows, where
@@ -539,19 +458,6 @@ mod tests {
     fn grid(mask: &Array3<u8>, params: &Params) -> GridGraph {
         let e = crate::volume::edt_squared(mask.view(), [1.0; 3]).unwrap();
         build(mask.view(), &e, [1.0; 3], params).unwrap()
-    }
-
-    #[test]
-    fn the_upper_half_gives_the_graph_back_exactly() {
-        let mut rnd = crate::test_rng(5);
-        for n in [0usize, 1, 2, 40, 9000] {
-            let (g, edges) = crate::test_graph(n, (0..3 * n).map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32)));
-            let half = g.upper_half().unwrap();
-            // Half the entries, each edge once.
-            assert_eq!(half.targets.len(), edges.len());
-            assert_eq!(half.to_full(), g, "n = {n}");
-        }
-        assert_eq!(Csr::default().upper_half().unwrap().to_full(), Csr::default());
     }
 
     /// A rayon call inside `PerThread::with` lets the thread steal another task of

@@ -14,7 +14,7 @@
 //! | count | row offsets of the foreground | `8 n0 n1` |
 //! | edt | row offsets; the EDT at the `N` foreground voxels (`f32`); one plane of run lengths (`u32`); per thread a plane buffer (`f32`, resident only where written) and envelope scratch | `8 n0 n1 + 4 N + 4 n1 n2 + T (4 min(n1 n2, N) + 40 max(n1, n2))` |
 //! | grid | the EDT; the foreground rows (`8 n0 n1 + 4 N`); per node its base-neighbour slots, degree, CSR, union-find, positions, radii, components | `8 n0 n1 + GRID[c] N` |
-//! | contract | the node graph's CSR, skeletal flags and slab order, its radii and components packed ([`crate::decimate::Parked`]: `f32` squares, runs of labels); while `M` is assembled also the positions and the l2-norm and medial Laplacians; during the solve, with the CSR packed to its upper half (`u32` offsets), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) and the four conjugate-gradient vectors (96 bytes) | `CONTRACT[c] N` |
+//! | contract | the node graph (CSR, radii, components), skeletal flags and slab order; while `M` is assembled also the positions and the l2-norm and medial Laplacians; during the solve `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) and the four conjugate-gradient vectors (96 bytes) | `CONTRACT[c] N` |
 //!
 //! `CONTRACT[c]` (bytes per foreground voxel at connectivity `c`) is the largest
 //! measured peak, over the mask and [`BASE`], with a margin of at least 10 %: the
@@ -23,13 +23,7 @@
 //! volumes of `../shared/data` (6: 224–305 over those with more than 50 000
 //! foreground voxels, the most on the thick vessels of `aorta_ct_03mm` and the
 //! two-photon stacks, 304 and 304 on `tpm_santos2015`; 18: 420–591; 26: 545–782, the
-//! most on `aorta_ct_04mm` at both). These were measured before the graph, radii and
-//! components were packed during the solve, which took the heap's peak on the 256³ bed
-//! from 214 to 192 bytes per foreground voxel (heap profile of the command line; peak
-//! RSS, which also holds the allocator's free pages, about 15 less in the median of four
-//! runs): the bound still holds, with a wider margin, until it is measured again. At
-//! the solve on the 256³ bed the heap holds, per node: the conjugate-gradient vectors
-//! 96, `M` 76, the packed graph 15, radii 4, skeletal flags 1. Thick vessels cost the most: their rows of `M` are
+//! most on `aorta_ct_04mm` at both). Thick vessels cost the most: their rows of `M` are
 //! full (25 entries at 6-connectivity), and after the first iterations the decimated
 //! graph has fewer nodes but denser rows, so on them the second or third solve, not
 //! the first, sets the peak. `GRID[c]` is the grid stage's figure (82–96 B at

@@ -5,7 +5,7 @@ use crate::blocks::{follow, VoxelFate};
 use crate::cancel::{self, Stop};
 use crate::coarse;
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
-use crate::decimate::{decimate_mapped, NodeGraph, Parked, CELL_LIMIT};
+use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
 use crate::edges_inside::{route_with_radii, Routed};
 use crate::ends::extend_ends;
 use crate::error::{Error, Result};
@@ -122,20 +122,17 @@ pub fn contract_step_mapped(
     let order = axes.map(|axes| clock.time("solve", || slab_order(&g.positions, c, axes)));
     cancel::checkpoint()?;
     // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
-    // `M` itself, and the conjugate-gradient vectors are allocated after. The radii and
-    // components, then the graph, wait out the assembly and the solve packed ([`Parked`]).
-    let (m, mut parked) = {
+    // `M` itself, and the conjugate-gradient vectors are allocated after.
+    let m = {
         let (ln, lm) = clock.time("laplacian", || {
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
         cancel::checkpoint()?;
-        let parked = clock.time("laplacian", || Parked::take(&mut g));
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
-        (clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref())), parked)
+        clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref()))
     };
     // The assembly stops early too (a partial matrix).
     cancel::checkpoint()?;
-    clock.time("solve", || parked.take_graph(&mut g));
     return_free_memory();
     let start = match &order {
         Some(order) => {
@@ -160,7 +157,6 @@ pub fn contract_step_mapped(
         }),
         None => moved,
     };
-    clock.time("decimate", || parked.restore(&mut g));
     let (next, map) = clock.time("decimate", || decimate_mapped(&g, &skeletal, c))?;
     Ok((next, stats, map))
 }
@@ -441,11 +437,6 @@ impl Skeletonizer {
         check_skeleton(&out)?;
         report(observer, "output", 0, out.positions.len(), f64::NAN)?;
         info.stage_seconds = clock.0;
-        // The run's threads exit with the pool; what they freed stays mapped in their
-        // heaps until trimmed, and a process that runs block after block (a Dask
-        // worker) would keep it.
-        drop(pool);
-        return_free_memory();
         Ok((Skeleton { info, ..out }, fate))
     }
 }
