@@ -65,14 +65,18 @@ pub fn decimate(g: &NodeGraph, keep: &[bool], c: f64) -> Result<NodeGraph> {
 /// which follow each voxel to its final node: [`crate::blocks`]).
 pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGraph, Vec<u32>)> {
     let n = g.positions.len();
-    let keys: Vec<(u128, u32)> = (0..n)
+    // Positions are checked first, so that the keys are collected straight into one
+    // vector of known length (collecting `Result`s goes through pieces that are then
+    // copied, twice the keys' 32 bytes a node at once).
+    g.positions.par_iter().try_for_each(|p| cell_of(p, c).map(|_| ()))?;
+    let mut order: Vec<(u128, u32)> = (0..n)
         .into_par_iter()
         .map(|i| {
             let tag = if keep[i] { i as u32 + 1 } else { 0 };
-            Ok((key(g.component[i], cell_of(&g.positions[i], c)?, tag), i as u32))
+            let cell = cell_of(&g.positions[i], c).unwrap_or_default();
+            (key(g.component[i], cell, tag), i as u32)
         })
-        .collect::<Result<_>>()?;
-    let mut order = keys;
+        .collect();
     order.par_sort_unstable();
     // Each pass takes up to a second on the largest graphs.
     crate::cancel::checkpoint()?;
@@ -86,6 +90,9 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
         cell[order[s].1 as usize] = cells;
     }
     let cells = if n > 0 { cells as usize + 1 } else { 0 };
+    // Every array is dropped once used: the decimation of the first contraction
+    // iteration, which holds the whole grid-sized graph, is among the run's peaks.
+    drop(order);
     // Cells paired through their shortest short edge: a greedy matching, shortest
     // first, so a cluster spans at most two cells.
     let limit = (SHORT_EDGE * c).powi(2);
@@ -111,6 +118,7 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
             partner[b as usize] = a;
         }
     }
+    drop(joins);
     // Clusters numbered by their first cell in key order.
     let mut cluster_of_cell = vec![u32::MAX; cells];
     let mut clusters = 0u32;
@@ -122,23 +130,19 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
         }
     }
     let clusters = clusters as usize;
+    drop(partner);
     let map: Vec<u32> = cell.iter().map(|&k| cluster_of_cell[k as usize]).collect();
+    drop((cell, cluster_of_cell));
     let (start, members) = members_by_cluster(&map, clusters);
     crate::cancel::checkpoint()?;
-    let merged: Vec<([f64; 3], f64, u32)> = (0..clusters)
-        .into_par_iter()
-        .map(|k| {
-            let m = &members[start[k]..start[k + 1]];
-            let (mean, r) = mean_and_largest(m, &g.positions, &g.radii);
-            (mean, r, g.component[m[0] as usize])
-        })
-        .collect();
-    let next = NodeGraph {
-        graph: quotient(&g.graph, &map, &start, &members),
-        positions: merged.iter().map(|m| m.0).collect(),
-        radii: merged.iter().map(|m| m.1).collect(),
-        component: merged.iter().map(|m| m.2).collect(),
-    };
+    // Each array of the new graph is collected on its own (no vector of tuples to
+    // copy them out of).
+    let member = |k: usize| &members[start[k]..start[k + 1]];
+    let merge = |k: usize| mean_and_largest(member(k), &g.positions, &g.radii);
+    let positions = (0..clusters).into_par_iter().map(|k| merge(k).0).collect();
+    let radii = (0..clusters).into_par_iter().map(|k| merge(k).1).collect();
+    let component = (0..clusters).into_par_iter().map(|k| g.component[member(k)[0] as usize]).collect();
+    let next = NodeGraph { graph: quotient(&g.graph, &map, &start, &members), positions, radii, component };
     Ok((next, map))
 }
 
