@@ -135,12 +135,11 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
     drop((cell, cluster_of_cell));
     let (start, members) = members_by_cluster(&map, clusters);
     crate::cancel::checkpoint()?;
-    // Each array of the new graph is collected on its own (no vector of tuples to
-    // copy them out of).
+    // Each array of the new graph is collected straight into its own vector (no
+    // vector of tuples to copy them out of); each cluster's mean is computed once.
     let member = |k: usize| &members[start[k]..start[k + 1]];
     let merge = |k: usize| mean_and_largest(member(k), &g.positions, &g.radii);
-    let positions = (0..clusters).into_par_iter().map(|k| merge(k).0).collect();
-    let radii = (0..clusters).into_par_iter().map(|k| merge(k).1).collect();
+    let (positions, radii) = (0..clusters).into_par_iter().map(merge).unzip();
     let component = (0..clusters).into_par_iter().map(|k| g.component[member(k)[0] as usize]).collect();
     let next = NodeGraph { graph: quotient(&g.graph, &map, &start, &members), positions, radii, component };
     Ok((next, map))
