@@ -7,9 +7,25 @@
 //! direction of the last stretch of its branch, to one radius (its output radius)
 //! inside the point where that line leaves the mask; a node already that far out
 //! stays. The search along the line is capped at `3 r + 4 c`.
+//!
+//! A straight line misses where the vessel curves or where two vessels run side by
+//! side into one protrusion of the mask (a leaf and an anastomosis back from it, a
+//! hairpin): the line leaves the mask early and the rest of the vessel is lost (on the
+//! noisy forests of `benches/fidelity.py`, stretches up to 14 voxels long that
+//! thinning found). So each end then follows the
+//! mask ([`follow_ends`]): the vessel voxels geodesically nearer to the end than to
+//! any other edge of the graph (26-neighbour steps, within the same `3 r + 4 c`) are
+//! the part of the mask beyond the end; where the farthest of them lies ahead of the
+//! end (on the far side of the plane through it orthogonal to its line) and more than
+//! a radius past the end's one-radius-inside point, the end moves along the
+//! shortest path towards it to the voxel one radius short of the mask's end, if that
+//! move runs within 45° of the line (more along it than across). The
+//! output's last step routes the edge to the moved end inside the mask
+//! ([`crate::edges_inside`]).
 
 use crate::grid::Csr;
 use crate::inside::voxel_of;
+use crate::vec3::{dot, sub};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -46,6 +62,32 @@ fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
+/// Every degree-1 node inside the mask mapped by `step(p, u, r, c)`: its position,
+/// its branch's unit direction pointing out of the end, its radius and the base cell
+/// (`None`: the end stays). Other nodes stay.
+fn move_ends<T: Voxel>(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    radii: &[f64],
+    mask: &ArrayView3<'_, T>,
+    spacing: [f64; 3],
+    step: impl Fn([f64; 3], [f64; 3], f64, f64) -> Option<[f64; 3]> + Sync,
+) -> Vec<[f64; 3]> {
+    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    (0..g.nodes())
+        .into_par_iter()
+        .map(|i| {
+            let p = positions[i];
+            if g.neighbours(i).len() != 1 || !inside(mask, p, spacing) {
+                return p;
+            }
+            let r = radii[i];
+            let Some(u) = direction(g, positions, i, (2.0 * r).max(2.0 * c)) else { return p };
+            step(p, u, r, c).unwrap_or(p)
+        })
+        .collect()
+}
+
 /// Positions with every degree-1 node moved to its vessel's end (see the module).
 pub fn extend_ends<T: Voxel>(
     g: &Csr,
@@ -54,29 +96,148 @@ pub fn extend_ends<T: Voxel>(
     mask: ArrayView3<'_, T>,
     spacing: [f64; 3],
 ) -> Vec<[f64; 3]> {
+    move_ends(g, positions, radii, &mask, spacing, |p, u, r, c| {
+        let h = c / STEPS_PER_CELL;
+        let steps = ((3.0 * r + 4.0 * c) / h).ceil() as usize;
+        let at = |t: f64| [p[0] + t * u[0], p[1] + t * u[1], p[2] + t * u[2]];
+        // The last inside sample; the boundary is half a step beyond it.
+        let last = (1..=steps).take_while(|&k| inside(&mask, at(k as f64 * h), spacing)).last().unwrap_or(0);
+        let t = (last as f64 + 0.5) * h - r;
+        (t > 0.0).then(|| at(t))
+    })
+}
+
+/// The voxels that the graph's edges pass through (sampled [`STEPS_PER_CELL`] times
+/// per base cell, as the ends' lines are), as sorted linear indices into the mask.
+fn edge_voxels(g: &Csr, positions: &[[f64; 3]], shape: [usize; 3], spacing: [f64; 3]) -> Vec<usize> {
     let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
-    let h = c / STEPS_PER_CELL;
-    (0..g.nodes())
-        .into_par_iter()
-        .map(|i| {
-            let p = positions[i];
-            if g.neighbours(i).len() != 1 || !inside(&mask, p, spacing) {
-                return p;
-            }
-            let r = radii[i];
-            let Some(u) = direction(g, positions, i, (2.0 * r).max(2.0 * c)) else { return p };
-            let steps = ((3.0 * r + 4.0 * c) / h).ceil() as usize;
-            let at = |t: f64| [p[0] + t * u[0], p[1] + t * u[1], p[2] + t * u[2]];
-            // The last inside sample; the boundary is half a step beyond it.
-            let last = (1..=steps).take_while(|&k| inside(&mask, at(k as f64 * h), spacing)).last().unwrap_or(0);
-            let t = (last as f64 + 0.5) * h - r;
-            if t > 0.0 {
-                at(t)
-            } else {
-                p
-            }
+    let mut out: Vec<usize> = g
+        .edge_list()
+        .par_iter()
+        .flat_map_iter(|&(a, b)| {
+            let (p, q) = (positions[a as usize], positions[b as usize]);
+            let pieces = (dist(&p, &q) * STEPS_PER_CELL / c).ceil() as usize;
+            (0..=pieces).filter_map(move |k| {
+                let t = if pieces == 0 { 0.0 } else { k as f64 / pieces as f64 };
+                let x = std::array::from_fn(|d| p[d] + t * (q[d] - p[d]));
+                voxel_of(x, spacing, shape).map(|v| (v[0] * shape[1] + v[1]) * shape[2] + v[2])
+            })
         })
-        .collect()
+        .collect();
+    out.par_sort_unstable();
+    out.dedup();
+    out
+}
+
+/// Where end `p` (radius `r`, its branch pointing along the unit `u`) continues
+/// along the mask: the vessel voxels reached from `p`'s voxel before any voxel of
+/// another edge (26-neighbour steps, geodesic distances within `reach`) form the part
+/// of the mask beyond the end; the voxel of that part farthest from `p` is where the
+/// vessel ends, and the end moves along the shortest path towards it to the voxel
+/// centre one radius (less half a cell) short of it, if that lies more than `r`
+/// further on, the farthest voxel lies ahead of `p` and the move runs within 45° of
+/// `u` (a side branch at the end, or the lateral wall of a thick vessel, is no
+/// continuation). `None`: the end stays.
+fn follow_mask<T: Voxel>(
+    mask: &ArrayView3<'_, T>,
+    edges: &[usize],
+    p: [f64; 3],
+    u: [f64; 3],
+    r: f64,
+    reach: f64,
+    spacing: [f64; 3],
+) -> Option<[f64; 3]> {
+    use std::cmp::Reverse;
+    use std::collections::{BinaryHeap, HashMap};
+    let (n0, n1, n2) = mask.dim();
+    let shape = [n0, n1, n2];
+    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let start = voxel_of(p, spacing, shape)?;
+    let half: [usize; 3] = std::array::from_fn(|d| (reach / spacing[d]).ceil() as usize + 1);
+    let lo: [usize; 3] = std::array::from_fn(|d| start[d].saturating_sub(half[d]));
+    let hi: [usize; 3] = std::array::from_fn(|d| (start[d] + half[d]).min(shape[d] - 1));
+    let linear = |v: [usize; 3]| (v[0] * shape[1] + v[1]) * shape[2] + v[2];
+    let voxel = |i: usize| [i / (shape[1] * shape[2]), (i / shape[2]) % shape[1], i % shape[2]];
+    let in_box = |v: [usize; 3]| (0..3).all(|d| lo[d] <= v[d] && v[d] <= hi[d]);
+    // Reached vessel voxels: distance, owner (true: the end; false: another edge) and
+    // the voxel it was reached from. Only reached voxels are stored.
+    let mut seen: HashMap<usize, (f64, bool, usize)> = HashMap::new();
+    let mut heap = BinaryHeap::new();
+    let s = linear(start);
+    let (first, last) = (edges.partition_point(|&i| i < linear(lo)), edges.partition_point(|&i| i <= linear(hi)));
+    for &i in &edges[first..last] {
+        let v = voxel(i);
+        if i != s && in_box(v) && mask[v].is_set() {
+            seen.insert(i, (0.0, false, i));
+            heap.push(Reverse((0u64, i)));
+        }
+    }
+    seen.insert(s, (0.0, true, s));
+    heap.push(Reverse((0u64, s)));
+    let mut far = (0.0, s);
+    // Each vessel voxel of the box is settled once: bounded by the box.
+    while let Some(Reverse((bits, i))) = heap.pop() {
+        let d = f64::from_bits(bits);
+        let (best, own, _) = seen[&i];
+        if d > best {
+            continue;
+        }
+        if own && d > far.0 {
+            far = (d, i);
+        }
+        let v = voxel(i);
+        for o in 0..27usize {
+            let w: [isize; 3] = std::array::from_fn(|k| v[k] as isize + [o / 9, (o / 3) % 3, o % 3][k] as isize - 1);
+            if o == 13 || (0..3).any(|k| w[k] < lo[k] as isize || w[k] > hi[k] as isize) {
+                continue;
+            }
+            let w = w.map(|x| x as usize);
+            if !mask[w].is_set() {
+                continue;
+            }
+            let step = (0..3).map(|k| ((w[k] as f64 - v[k] as f64) * spacing[k]).powi(2)).sum::<f64>().sqrt();
+            let (j, nd) = (linear(w), d + step);
+            if nd <= reach && seen.get(&j).is_none_or(|e| nd < e.0) {
+                seen.insert(j, (nd, own, i));
+                heap.push(Reverse((nd.to_bits(), j)));
+            }
+        }
+    }
+    let target = far.0 + 0.5 * c - r;
+    let centre = |v: [usize; 3]| -> [f64; 3] { std::array::from_fn(|d| v[d] as f64 * spacing[d]) };
+    if target <= r || dot(sub(centre(voxel(far.1)), p), u) <= 0.0 {
+        return None;
+    }
+    let mut i = far.1;
+    // Back along the path (each step lowers the distance): bounded by the reached voxels.
+    for _ in 0..seen.len() {
+        let (d, _, from) = seen[&i];
+        if d <= target || from == i {
+            break;
+        }
+        i = from;
+    }
+    // The move runs more along the branch's line than across it.
+    let q = centre(voxel(i));
+    let along = dot(sub(q, p), u);
+    (along * std::f64::consts::SQRT_2 >= dist(&q, &p)).then_some(q)
+}
+
+/// Every end moved along the mask to where its vessel ends, when the mask goes on
+/// past it by more than a radius (see [`follow_mask`]): a vessel that curves or
+/// splits beyond the end, which the straight line of [`extend_ends`] leaves.
+pub fn follow_ends<T: Voxel>(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    radii: &[f64],
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
+) -> Vec<[f64; 3]> {
+    let (n0, n1, n2) = mask.dim();
+    let edges = edge_voxels(g, positions, [n0, n1, n2], spacing);
+    move_ends(g, positions, radii, &mask, spacing, |p, u, r, c| {
+        follow_mask(&mask, &edges, p, u, r, 3.0 * r + 4.0 * c, spacing)
+    })
 }
 
 #[cfg(test)]
@@ -107,5 +268,49 @@ mod tests {
         // The search is capped at 3 r + 4 c: radius 1 moves node 2 by at most 7 - 1.
         let out = extend_ends(&g, &p, &[0.5, 0.5, 1.0], mask.view(), [1.0; 3]);
         assert!(out[2][2] <= 16.0 + 0.25, "{:?}", out[2]);
+    }
+
+    #[test]
+    fn an_end_follows_its_vessel_where_it_bends() {
+        // A one-voxel bar along axis 2 (k = 0..=15) that goes on diagonally from k = 15
+        // ((1, 1 + t, 15 + t), t = 0..=10); a path along the bar ends at k = 14, where
+        // the straight line of `extend_ends` leaves the mask one voxel on.
+        let mut mask = Array3::<u8>::zeros((3, 14, 28));
+        for k in 0..=15 {
+            mask[[1, 1, k]] = 1;
+        }
+        for t in 0..=10 {
+            mask[[1, 1 + t, 15 + t]] = 1;
+        }
+        let g = Csr::from_sorted_edges(3, &[(0, 1), (1, 2)]);
+        let p = [[1.0, 1.0, 1.0], [1.0, 1.0, 8.0], [1.0, 1.0, 14.0]];
+        let straight = extend_ends(&g, &p, &[1.0; 3], mask.view(), [1.0; 3]);
+        assert!(straight[2][1] < 1.5 && straight[2][2] < 15.0, "{:?}", straight[2]);
+        // Within the reach 3 r + 4 = 7 the farthest voxel of the mask beyond the end is
+        // (1, 5, 19), 1 + 4 √2 away: the end moves along the path to the last voxel at
+        // most that less r - 1/2 away, (1, 4, 18). Node 0 is one radius inside its cap.
+        let out = follow_ends(&g, &p, &[1.0; 3], mask.view(), [1.0; 3]);
+        assert_eq!(out[2], [1.0, 4.0, 18.0]);
+        assert_eq!(&out[..2], &p[..2]);
+        // Another edge along the diagonal owns it: the end has nowhere to go. That
+        // edge's far end (node 4) follows the rest of the diagonal, 3 √2 long, to the
+        // last voxel at most 3 √2 - 1/2 away.
+        let g = Csr::from_sorted_edges(5, &[(0, 1), (1, 2), (3, 4)]);
+        let q = [p[0], p[1], p[2], [1.0, 3.0, 17.0], [1.0, 8.0, 22.0]];
+        let out = follow_ends(&g, &q, &[1.0; 5], mask.view(), [1.0; 3]);
+        assert_eq!(&out[..4], &q[..4]);
+        assert_eq!(out[4], [1.0, 10.0, 24.0]);
+        // A straight bar whose end is already one radius inside the cap stays, and so
+        // does one with a side branch square to it at the end: that is not ahead.
+        let mut bar = Array3::<u8>::zeros((3, 14, 28));
+        for k in 0..=15 {
+            bar[[1, 1, k]] = 1;
+        }
+        let g = Csr::from_sorted_edges(3, &[(0, 1), (1, 2)]);
+        assert_eq!(follow_ends(&g, &p, &[1.0; 3], bar.view(), [1.0; 3]), p);
+        for j in 2..=9 {
+            bar[[1, j, 14]] = 1;
+        }
+        assert_eq!(follow_ends(&g, &p, &[1.0; 3], bar.view(), [1.0; 3]), p);
     }
 }

@@ -58,6 +58,7 @@ pub mod inside;
 pub mod laplacian;
 pub mod medial;
 pub mod memory;
+pub mod packed;
 pub mod params;
 pub mod pipeline;
 pub mod precondition;
@@ -83,6 +84,17 @@ pub(crate) fn test_rng(seed: u64) -> impl FnMut(u64) -> u64 {
     move |m| {
         state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         (state >> 33) % m
+    }
+}
+
+/// Deterministic pseudo-random numbers in `[0, 1)` for the unit tests (the top 53 bits
+/// of the same generator as [`test_rng`]).
+#[cfg(test)]
+pub(crate) fn test_unit_rng(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
     }
 }
 

@@ -7,7 +7,7 @@ use crate::coarse;
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
 use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
 use crate::edges_inside::{route_with_radii, Routed};
-use crate::ends::extend_ends;
+use crate::ends::{extend_ends, follow_ends};
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled};
@@ -15,6 +15,7 @@ use crate::inside::{keep_inside, loop_of_the_mask, LOOP_RADIUS_SHIFT};
 use crate::laplacian;
 use crate::medial;
 use crate::memory;
+use crate::packed::{PackedCsr, PackedNodes};
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
 use crate::radius::output_radii;
@@ -123,17 +124,21 @@ pub fn contract_step_mapped(
     cancel::checkpoint()?;
     // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
     // `M` itself, and the conjugate-gradient vectors are allocated after.
-    let m = {
+    // The radii and components are not read again until the decimation, nor the graph
+    // once `M` is assembled: they wait packed ([`crate::packed`]) while the solve runs.
+    let (m, nodes) = {
         let (ln, lm) = clock.time("laplacian", || {
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
         cancel::checkpoint()?;
+        let nodes =
+            clock.time("solve", || PackedNodes::new(std::mem::take(&mut g.radii), std::mem::take(&mut g.component)));
+        return_free_memory();
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
-        clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref()))
+        (clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref())), nodes)
     };
     // The assembly stops early too (a partial matrix).
     cancel::checkpoint()?;
-    return_free_memory();
     let start = match &order {
         Some(order) => {
             let positions = std::mem::take(&mut g.positions);
@@ -141,12 +146,16 @@ pub fn contract_step_mapped(
         }
         None => std::mem::take(&mut g.positions),
     };
+    let graph = clock.time("solve", || PackedCsr::new(std::mem::take(&mut g.graph)));
+    return_free_memory();
     let r = clock.time("solve", || m.displacement_rhs(&start));
     let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, tol, p.cg_max_iterations));
     drop(m);
     // The solve stops early when the run is asked to stop: its result is partial.
     cancel::checkpoint()?;
     return_free_memory();
+    g.graph = clock.time("solve", || graph.unpack());
+    (g.radii, g.component) = clock.time("solve", || nodes.unpack());
     g.positions = match &order {
         Some(order) => clock.time("solve", || {
             let mut positions = filled(order.len(), [0.0; 3]);
@@ -413,6 +422,7 @@ impl Skeletonizer {
                 // A moved end can stop past a background voxel the line grazed
                 // between two samples: it is kept inside once more.
                 let ends = pool.install(|| extend_ends(&g.graph, &g.positions, &radii, mask, spacing));
+                let ends = pool.install(|| follow_ends(&g.graph, &ends, &radii, mask, spacing));
                 pool.install(|| keep_inside(&ends, mask, spacing))
             } else {
                 std::mem::take(&mut g.positions)
