@@ -18,8 +18,10 @@
 //! the part of the mask beyond the end; where the farthest of them lies ahead of the
 //! end (on the far side of the plane through it orthogonal to its line) and more than
 //! a radius past the end's one-radius-inside point, the end moves along the
-//! shortest path towards it to the voxel one radius short of the mask's end, if that
-//! move runs within 45° of the line (more along it than across). The
+//! shortest path towards it to the voxel one radius short of the mask's end. Where
+//! the array's faces cut that part of the mask (a vessel leaving the volume, or a
+//! block's cut in a chunked run), the mask ends at the cut, not at a cap, and the
+//! move must run within 45° of the line (more along it than across). The
 //! output's last step routes the edge to the moved end inside the mask
 //! ([`crate::edges_inside`]).
 
@@ -135,9 +137,10 @@ fn edge_voxels(g: &Csr, positions: &[[f64; 3]], shape: [usize; 3], spacing: [f64
 /// of the mask beyond the end; the voxel of that part farthest from `p` is where the
 /// vessel ends, and the end moves along the shortest path towards it to the voxel
 /// centre one radius (less half a cell) short of it, if that lies more than `r`
-/// further on, the farthest voxel lies ahead of `p` and the move runs within 45° of
-/// `u` (a side branch at the end, or the lateral wall of a thick vessel, is no
-/// continuation). `None`: the end stays.
+/// further on and the farthest voxel lies ahead of `p` (a side branch at the end is no
+/// continuation); where that part of the mask reaches the array's faces, the move
+/// must also run within 45° of `u` (at a cut, the rim is no continuation). `None`: the
+/// end stays.
 fn follow_mask<T: Voxel>(
     mask: &ArrayView3<'_, T>,
     edges: &[usize],
@@ -175,6 +178,8 @@ fn follow_mask<T: Voxel>(
     seen.insert(s, (0.0, true, s));
     heap.push(Reverse((0u64, s)));
     let mut far = (0.0, s);
+    // Whether the vessel beyond the end reaches the array's faces (it is cut there).
+    let mut cut = false;
     // Each vessel voxel of the box is settled once: bounded by the box.
     while let Some(Reverse((bits, i))) = heap.pop() {
         let d = f64::from_bits(bits);
@@ -182,10 +187,13 @@ fn follow_mask<T: Voxel>(
         if d > best {
             continue;
         }
-        if own && d > far.0 {
-            far = (d, i);
-        }
         let v = voxel(i);
+        if own {
+            if d > far.0 {
+                far = (d, i);
+            }
+            cut |= (0..3).any(|k| v[k] == 0 || v[k] + 1 == shape[k]);
+        }
         for o in 0..27usize {
             let w: [isize; 3] = std::array::from_fn(|k| v[k] as isize + [o / 9, (o / 3) % 3, o % 3][k] as isize - 1);
             if o == 13 || (0..3).any(|k| w[k] < lo[k] as isize || w[k] > hi[k] as isize) {
@@ -217,10 +225,12 @@ fn follow_mask<T: Voxel>(
         }
         i = from;
     }
-    // The move runs more along the branch's line than across it.
+    // Where the array's faces cut the vessel beyond the end, the mask there ends at
+    // the face, not at a cap: the move runs more along the branch's line than across
+    // it (else it goes to the cut's rim).
     let q = centre(voxel(i));
     let along = dot(sub(q, p), u);
-    (along * std::f64::consts::SQRT_2 >= dist(&q, &p)).then_some(q)
+    (!cut || along * std::f64::consts::SQRT_2 >= dist(&q, &p)).then_some(q)
 }
 
 /// Every end moved along the mask to where its vessel ends, when the mask goes on
@@ -312,5 +322,32 @@ mod tests {
             bar[[1, j, 14]] = 1;
         }
         assert_eq!(follow_ends(&g, &p, &[1.0; 3], bar.view(), [1.0; 3]), p);
+    }
+
+    #[test]
+    fn an_end_turns_with_its_vessel_unless_the_array_face_cuts_it() {
+        // A one-voxel bar along axis 2 (k = 0..=15) that turns square at k = 15 along
+        // axis 1 ((1, 1 + t, 15), t = 0..=8 or to the array's face); a path along the bar ends at k = 14.
+        let l_bar = |n1: usize| {
+            let mut mask = Array3::<u8>::zeros((3, n1, 28));
+            for k in 0..=15 {
+                mask[[1, 1, k]] = 1;
+            }
+            for t in 0..=8.min(n1 - 2) {
+                mask[[1, 1 + t, 15]] = 1;
+            }
+            mask
+        };
+        let g = Csr::from_sorted_edges(3, &[(0, 1), (1, 2)]);
+        let p = [[1.0, 1.0, 1.0], [1.0, 1.0, 8.0], [1.0, 1.0, 14.0]];
+        // Inside the array the end follows the turn: the farthest voxel within the reach
+        // 3 r + 4 = 7 is (1, 7, 15), sqrt 2 + 5 away; the end stops at the last path voxel
+        // within that less r - 1/2, (1, 6, 15).
+        let out = follow_ends(&g, &p, &[1.0; 3], l_bar(14).view(), [1.0; 3]);
+        assert_eq!(out[2], [1.0, 6.0, 15.0]);
+        // With the turn running into the array's face (y = 7 is its last row) the mask
+        // ends at a cut, not a cap: a move that far across the line is refused.
+        let out = follow_ends(&g, &p, &[1.0; 3], l_bar(8).view(), [1.0; 3]);
+        assert_eq!(out, p);
     }
 }
