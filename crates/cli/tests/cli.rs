@@ -368,9 +368,11 @@ fn embedded_entry_stops_when_asked_and_writes_nothing() {
 fn sigint_stops_the_binary_with_130_and_no_output() {
     use std::io::{BufRead, BufReader};
     let dir = TempDir::new().unwrap();
-    // Long enough that the contraction is still running when the signal lands.
+    // Long enough that the contraction is still running when the signal lands, even
+    // on a loaded machine where the handler's thread waits to be scheduled (a 600-voxel
+    // tube ran to completion, 0.7 s, before it did under CI's parallel tests).
     let input = dir.path().join("long.npy");
-    shapes::cylinder([600, 31, 31], 8.0).write_npy(File::create(&input).unwrap()).unwrap();
+    shapes::cylinder([2400, 31, 31], 8.0).write_npy(File::create(&input).unwrap()).unwrap();
     let output = dir.path().join("g.json");
     let mut child = Command::new(env!("CARGO_BIN_EXE_vesselflow"))
         .args(["skeletonize", path_str(&input), "-o", path_str(&output)])
