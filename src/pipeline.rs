@@ -417,7 +417,7 @@ impl Skeletonizer {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             let shift = p.radius_correction * c;
             // One radius rule for every output node, the routed-in ones too.
-            let radii = pool.install(|| output_radii(&g.graph, &g.positions, &g.radii, mask, spacing, shift));
+            let radii = pool.install(|| output_radii(&g.graph, &g.positions, &g.radii, mask, &field, spacing, shift));
             let positions = if p.anchor_ends {
                 // A moved end can stop past a background voxel the line grazed
                 // between two samples: it is kept inside once more.

@@ -177,7 +177,7 @@ fn thin_vessels_stop_when_the_contraction_stalls() {
     assert_inside_dilated(&mask, &s);
     assert!(length(&s) >= 0.97 * truth, "centreline {:.1} of {truth:.1}", length(&s));
     // Without the stall test (METHOD.md) the flow runs on and shortens the vessels
-    // (112.8 of 126.6; 120.5 since the ends follow the mask at output, `src/ends.rs`).
+    // (112.8 of 126.6; 120.9 since the ends follow the mask at output, `src/ends.rs`).
     let method = run_with(mask.view(), [1.0; 3], Params { stall_ratio: 0.0, ..Params::default() });
     eprintln!("without: {} iterations, length {:.1}", method.info.iterations, length(&method));
     assert!(!method.info.stalled && method.info.iterations > 20);

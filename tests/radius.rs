@@ -9,6 +9,7 @@
 
 use ndarray::Array3;
 use vesselflow::grid::Csr;
+use vesselflow::medial::Field;
 use vesselflow::radius::{node_radii, RadiusModel};
 use vesselflow::volume::edt_squared;
 
@@ -158,9 +159,10 @@ fn measure(next: &mut impl FnMut() -> f64, r_vox: f64, spacing: [f64; 3], raster
         }
     }
     let g = Csr::from_sorted_edges(3, &[(0, 1), (1, 2)]);
+    let field = Field::new(mask.view(), spacing).unwrap();
     let got = MODELS
         .iter()
-        .map(|&(_, model)| node_radii(model, &g, &positions, &[r_edt; 3], mask.view(), spacing)[1] / c)
+        .map(|&(_, model)| node_radii(model, &g, &positions, &[r_edt; 3], mask.view(), &field, spacing)[1] / c)
         .collect();
     Case { r: r_vox, got }
 }
@@ -296,8 +298,9 @@ fn a_junction_takes_its_inscribed_radius() {
     });
     let positions = vec![[c, c, c], [c - 6.0, c, c], [c + 6.0, c, c], [c, c + 6.0, c]];
     let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (0, 3)]);
+    let field = Field::new(mask.view(), [1.0; 3]).unwrap();
     for (name, model) in MODELS.iter().skip(2) {
-        let got = node_radii(*model, &g, &positions, &[6.0, r, r, r], mask.view(), [1.0; 3])[0];
+        let got = node_radii(*model, &g, &positions, &[6.0, r, r, r], mask.view(), &field, [1.0; 3])[0];
         assert!((got - r).abs() <= 0.5, "{name}: junction radius {got}");
     }
 }
@@ -318,8 +321,9 @@ fn a_junction_near_the_array_face_takes_the_distance_to_the_face() {
         let positions = vec![p, [p[0] + 4.0, p[1], p[2]], [p[0], p[1] + 4.0, p[2]], [p[0], p[1], p[2] + 4.0]];
         let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (0, 3)]);
         let edt = [edt; 4];
+        let field = Field::new(mask.view(), spacing).unwrap();
         for (name, model) in MODELS.iter().skip(2) {
-            let got = node_radii(*model, &g, &positions, &edt, mask.view(), spacing)[0];
+            let got = node_radii(*model, &g, &positions, &edt, mask.view(), &field, spacing)[0];
             assert!((got - want).abs() < 1e-9, "{name} {spacing:?}: junction radius {got}, want {want}");
         }
     }
