@@ -255,8 +255,7 @@ pub fn route_inside<T: Voxel>(
     }
     new_edges.sort_unstable();
     new_edges.dedup();
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
-    let inserted_edt = all[old..].iter().map(|&m| field.interpolate(m) * c).collect();
+    let inserted_edt = all[old..].iter().map(|&m| field.radius_at(m)).collect();
     Routed { graph: Csr::from_sorted_edges(all.len(), &new_edges), positions: all, inserted, inserted_edt }
 }
 

@@ -158,6 +158,14 @@ impl Field {
         sum
     }
 
+    /// The transform interpolated at `p`, in physical units: the first-guess radius of a
+    /// node placed where no cluster of voxels gives it one (edges split after a coarse
+    /// start, [`crate::resample::ridge_radii`]; routed edges, [`crate::edges_inside`]).
+    pub fn radius_at(&self, p: [f64; 3]) -> f64 {
+        let c = self.spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        self.interpolate(p) * c
+    }
+
     /// True if `p` lies on a foreground voxel.
     fn inside(&self, p: [f64; 3]) -> bool {
         voxel_of(p, self.spacing, self.shape).is_some_and(|v| self.at(v.map(|x| x as isize)) > 0.0)

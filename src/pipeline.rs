@@ -400,7 +400,9 @@ impl Skeletonizer {
         }
 
         // With a coarse start, edges longer than its cells are split (`resample`); the
-        // old nodes keep their numbers, so the voxels' fate needs no update.
+        // old nodes keep their numbers, so the voxels' fate needs no update, and the new
+        // ones are numbered from `split`.
+        let split = g.positions.len();
         if p.coarse_cell > 0.0 {
             g = clock.time("resample", || resample::split_long_edges(std::mem::take(&mut g), p.coarse_cell, spacing));
         }
@@ -415,6 +417,10 @@ impl Skeletonizer {
 
         let out = clock.time("output", || {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
+            // The nodes the split added take the transform where they now sit.
+            if p.coarse_cell > 0.0 {
+                resample::ridge_radii(&mut g.radii, &g.positions, split, &field);
+            }
             let shift = p.radius_correction * c;
             // One radius rule for every output node, the routed-in ones too.
             let radii = pool.install(|| output_radii(&g.graph, &g.positions, &g.radii, mask, &field, spacing, shift));
