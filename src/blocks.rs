@@ -50,6 +50,7 @@ use crate::grid::{Csr, GridGraph};
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
 use crate::resample::split_long_edges;
+use crate::vec3::base_cell;
 use crate::volume::{edt_squared, Voxel};
 use ndarray::ArrayView3;
 use petgraph::unionfind::UnionFind;
@@ -194,7 +195,7 @@ impl Skeletonizer {
         }
         let (skeleton, fate) = self.run_tracked(mask, origin, spacing, stop, &mut |_| true, true)?;
         let fate = fate.ok_or_else(|| Error::Internal("a tracked run lost its voxels".into()))?;
-        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let c = base_cell(spacing);
 
         // Core voxels: (component, cell, voxel id, block index), in C order.
         let mut voxels: Vec<(u32, [i64; 3], usize, [usize; 3])> = vec![];
@@ -290,7 +291,7 @@ impl Skeletonizer {
     pub fn merge_blocks(&self, parts: &[BlockPart], volume: [usize; 3], spacing: [f64; 3]) -> Result<Skeleton> {
         crate::volume::check_spacing(spacing)?;
         let p = self.params();
-        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let c = base_cell(spacing);
         // Global record ids: blocks in order, records in order.
         let mut first = vec![0usize];
         for part in parts {

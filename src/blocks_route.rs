@@ -24,6 +24,7 @@ use crate::grid::Csr;
 use crate::inside::SEARCH_LIMIT;
 use crate::medial::Field;
 use crate::pipeline::Skeletonizer;
+use crate::vec3::base_cell;
 use crate::volume::{check_spacing, Voxel};
 use ndarray::ArrayView3;
 
@@ -39,7 +40,7 @@ pub fn owner_voxel(p: [f64; 3], q: [f64; 3], spacing: [f64; 3], volume: [usize; 
 /// Voxels along axis `d` the routing of an edge may read beyond the edge's bounding box,
 /// given `reach`, the larger distance-transform value at its ends in base cells.
 pub fn needed_margin(reach: f64, spacing: [f64; 3], d: usize) -> f64 {
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     (SEARCH_LIMIT + PATH_MARGIN + 1) as f64 + 2.0 * (reach + 1.0) * c / spacing[d]
 }
 
@@ -129,7 +130,7 @@ impl Skeletonizer {
         }
 
         let g = Csr::from_sorted_edges(nodes.len(), &pairs);
-        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let c = base_cell(spacing);
         let shift = self.params().radius_correction * c;
         let (routed, radii) = pool.install(|| route_with_radii(&g, &shifted, &field, mask, spacing, shift));
         let old = nodes.len();

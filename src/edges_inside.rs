@@ -45,7 +45,7 @@ use crate::grid::Csr;
 use crate::inside::{nearest_foreground, voxel_of};
 use crate::medial::{climb, plane_basis, Field};
 use crate::radius::output_radii;
-use crate::vec3::{norm, sub};
+use crate::vec3::{base_cell, norm, sub};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -75,7 +75,7 @@ pub struct Routed {
 /// and the number of samples (see the module); `None` when every sample is foreground.
 pub fn outside_run<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], q: [f64; 3], spacing: [f64; 3]) -> Option<Outside> {
     let (n0, n1, n2) = mask.dim();
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     let d = sub(q, p);
     let pieces = ((norm(d) * SAMPLES_PER_CELL / c).ceil() as usize).max(1);
     let outside = |k: usize| {
@@ -118,7 +118,7 @@ fn route<T: Voxel>(
         out.extend(voxel_path(mask, p, q, spacing));
         return;
     }
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     let d = sub(q, p);
     let t = (first + last + 1) as f64 / (2 * pieces) as f64;
     let middle = std::array::from_fn(|a| p[a] + t * d[a]);
@@ -198,7 +198,7 @@ fn voxel_path<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], q: [f64; 3], spac
         path.push(centre(i));
     }
     path.reverse();
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     path.retain(|&x| norm(sub(x, p)) > 1e-9 * c && norm(sub(x, q)) > 1e-9 * c);
     path
 }

@@ -27,7 +27,7 @@
 
 use crate::grid::Csr;
 use crate::inside::voxel_of;
-use crate::vec3::{dot, sub};
+use crate::vec3::{base_cell, dot, sub};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -76,7 +76,7 @@ fn move_ends<T: Voxel>(
     spacing: [f64; 3],
     step: impl Fn([f64; 3], [f64; 3], f64, f64) -> Option<[f64; 3]> + Sync,
 ) -> Vec<[f64; 3]> {
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     (0..g.nodes())
         .into_par_iter()
         .map(|i| {
@@ -113,7 +113,7 @@ pub fn extend_ends<T: Voxel>(
 /// The voxels that the graph's edges pass through (sampled [`STEPS_PER_CELL`] times
 /// per base cell, as the ends' lines are), as sorted linear indices into the mask.
 fn edge_voxels(g: &Csr, positions: &[[f64; 3]], shape: [usize; 3], spacing: [f64; 3]) -> Vec<usize> {
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     let mut out: Vec<usize> = g
         .edge_list()
         .par_iter()
@@ -155,7 +155,7 @@ fn follow_mask<T: Voxel>(
     use std::collections::BinaryHeap;
     let (n0, n1, n2) = mask.dim();
     let shape = [n0, n1, n2];
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     let start = voxel_of(p, spacing, shape)?;
     let half: [usize; 3] = std::array::from_fn(|d| (reach / spacing[d]).ceil() as usize + 1);
     let lo: [usize; 3] = std::array::from_fn(|d| start[d].saturating_sub(half[d]));

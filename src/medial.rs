@@ -51,7 +51,7 @@
 use crate::error::Result;
 use crate::grid::Csr;
 use crate::inside::voxel_of;
-use crate::vec3::{cross, dot, norm, sub};
+use crate::vec3::{base_cell, cross, dot, norm, sub};
 use crate::volume::{edt_squared_rows, foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use rayon::prelude::*;
@@ -107,7 +107,7 @@ impl Field {
     pub fn new<T: Voxel>(mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Result<Field> {
         let (n0, n1, n2) = mask.dim();
         let starts = foreground_rows(mask)?;
-        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let c = base_cell(spacing);
         let mut dist = edt_squared_rows(mask, &starts, spacing.map(|s| s / c))?;
         dist.par_iter_mut().for_each(|d| *d = d.sqrt());
         let mut ks = crate::memory::try_filled(starts[n0 * n1], 0u32)?;
@@ -162,7 +162,7 @@ impl Field {
     /// node placed where no cluster of voxels gives it one (edges split after a coarse
     /// start, [`crate::resample::ridge_radii`]; routed edges, [`crate::edges_inside`]).
     pub fn radius_at(&self, p: [f64; 3]) -> f64 {
-        let c = self.spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let c = base_cell(self.spacing);
         self.interpolate(p) * c
     }
 
@@ -281,7 +281,7 @@ pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f6
 /// the nodes' radii (physical units), which bound their moves; `field` is the
 /// distance transform of the mask ([`Field::new`]).
 pub fn recentre(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field) -> Vec<[f64; 3]> {
-    let c = field.spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(field.spacing);
     let reach = |i: usize| (CAP * radii[i]).max(MIN_CAP * c);
     let curves: Vec<[f64; 3]> = (0..g.nodes())
         .into_par_iter()

@@ -21,6 +21,7 @@ use crate::precondition::{slab_axes, slab_order, NormalMatrix};
 use crate::radius::output_radii;
 use crate::resample;
 use crate::solver::{self, NormalOperator, SolveStats};
+use crate::vec3::base_cell;
 use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -273,7 +274,7 @@ impl Skeletonizer {
     ) -> Result<(Skeleton, Option<VoxelFate>)> {
         check_spacing(spacing)?;
         check_shape(mask)?;
-        let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let c = base_cell(spacing);
         let (n0, n1, n2) = mask.dim();
         for (d, n) in [n0, n1, n2].into_iter().enumerate() {
             let far = n as f64 * spacing[d] / c;

@@ -101,7 +101,7 @@
 
 use crate::grid::Csr;
 use crate::medial::{plane_basis, Field};
-use crate::vec3::{dot, sub, unit};
+use crate::vec3::{base_cell, dot, sub, unit};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -223,7 +223,7 @@ fn section_area<T: Voxel>(
 /// `(c, h, ρ)`: the base cell, the slab's half-width and the disc's reach for the first
 /// guess `r0` (see the module).
 fn sizes(spacing: [f64; 3], r0: f64) -> (f64, f64, f64) {
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     let h = spacing.iter().cloned().fold(0.0, f64::max).max(0.5 * r0);
     (c, h, 1.5 * r0 + 2.0 * c)
 }
@@ -578,7 +578,7 @@ fn inscribed_radius<T: Voxel>(mask: &ArrayView3<'_, T>, spacing: [f64; 3], p: [f
 /// `r0`): an isolated node's blob. (A zero direction makes every point's offset
 /// from the "line" its offset from `p`, so the disc is a ball.)
 fn ball_radius<T: Voxel>(mask: &ArrayView3<'_, T>, spacing: [f64; 3], p: [f64; 3], r0: f64) -> f64 {
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     // With `t = 0` every voxel is at the tent's middle: weight 1 per unit `half`.
     let (volume, _) = section_area(mask, spacing, p, [0.0; 3], (0.0, 1.0), 1.5 * r0 + 2.0 * c);
     (volume * 0.75 / std::f64::consts::PI).cbrt()
@@ -614,7 +614,7 @@ pub fn node_radii<T: Voxel>(
     field: &Field,
     spacing: [f64; 3],
 ) -> Vec<f64> {
-    let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let c = base_cell(spacing);
     let cap = 0.5 * dot(spacing, spacing).sqrt();
     (0..g.nodes())
         .into_par_iter()
@@ -748,7 +748,7 @@ mod tests {
         let mut skipped = 0;
         for (spacing, ball) in [([1.0; 3], false), ([1.6, 1.0, 0.7], false), ([1.0; 3], true), ([1.6, 1.0, 0.7], true)]
         {
-            let c = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+            let c = base_cell(spacing);
             let dims = if ball { (12, 14, 17) } else { (7, 8, 9) };
             // A ball of radius 6 (physical) about a point near a corner of the array.
             let centre = [4.0, 7.0, 6.0].map(|x: f64| x * 1.6);

@@ -6,6 +6,11 @@ pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
+/// The base cell `c`: the smallest voxel spacing, the unit of the stages' lengths.
+pub(crate) fn base_cell(spacing: [f64; 3]) -> f64 {
+    spacing.iter().cloned().fold(f64::INFINITY, f64::min)
+}
+
 /// The dot product.
 pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
