@@ -40,15 +40,6 @@ impl Csr {
         &self.targets[self.offsets[i]..self.offsets[i + 1]]
     }
 
-    /// The entry of row `i` that points to `j`, for an edge `i — j` (every edge is
-    /// stored in both its rows, so entry `j → i` has this twin).
-    #[inline]
-    pub fn twin(&self, i: usize, j: usize) -> usize {
-        let at = self.neighbours(i).partition_point(|&k| (k as usize) < j);
-        debug_assert_eq!(self.neighbours(i).get(at), Some(&(j as u32)), "no edge {i} — {j}");
-        self.offsets[i] + at
-    }
-
     /// From undirected edges `(a, b)` with `a < b`, sorted and without duplicates.
     pub fn from_sorted_edges(nodes: usize, edges: &[(u32, u32)]) -> Csr {
         let mut degree = vec![0usize; nodes + 1];

@@ -1,46 +1,82 @@
 //! l2-norm and medial Laplacians and adaptive anchoring (docs/method.md §2.1–2.3,
 //! paper §III-B eqs. 2–4 and §III-D eq. 9).
 //!
-//! A Laplacian `L = W - I` is stored as its off-diagonal weights, one per CSR
-//! entry (row-normalised), and its diagonal, which is `-1` for a row with
-//! weights and `0` for a row whose weight sum is 0: such a node gets no pull from
-//! that term, rather than a pull toward the origin.
+//! A Laplacian `L = W - I` has row-normalised off-diagonal weights, one per CSR
+//! entry, computed when read from one stored total per row, and a diagonal which is
+//! `-1` for a row with weights and `0` for a row whose weight sum is 0: such a node
+//! gets no pull from that term, rather than a pull toward the origin.
 
-use crate::grid::{for_row_blocks, Csr};
+use crate::grid::Csr;
 use crate::params::{MedialWeight, Params};
 use rayon::prelude::*;
 
-/// One Laplacian: `(L x)_i = diagonal_i x_i + sum_e weight_e x_{target_e}`. Its
-/// transpose is read through the graph's twins: `W_ji`, the weight of entry `j → i`, is
-/// `weight[g.twin(j, i)]`.
-#[derive(Debug, Clone, Default)]
-pub struct Laplacian {
-    /// `W_ij` per CSR entry `i → j`.
-    pub weight: Vec<f32>,
-    /// `-1`, or `0` for a row with no weight.
-    pub diagonal: Vec<f32>,
+/// One Laplacian: `(L x)_i = diagonal(i) x_i + sum_j weight(i, j) x_j` over the
+/// neighbours `j` of `i`. Its weights are not stored: each is computed when read,
+/// `(a(i, j) / total_i) as f32`, from the affinity `a` and one stored row total per
+/// node. That keeps 8 bytes a node instead of 4 bytes per CSR entry plus a diagonal
+/// (about 28 on a 6-connected grid) while `M` is assembled, the run's peak, and gives
+/// `W_ji` (the transpose) as cheaply as `W_ij`. The values are those a stored array
+/// would hold, bit for bit.
+#[derive(Debug, Clone)]
+pub struct Laplacian<'a> {
+    affinity: Affinity<'a>,
+    /// `sum_k a(i, k)` over the neighbours of `i`, summed in neighbour order.
+    total: Vec<f64>,
 }
 
-impl Laplacian {
-    /// Row-normalised weights from an unnormalised affinity `a(i, j) >= 0`.
-    fn from_affinity(g: &Csr, affinity: impl Fn(usize, usize) -> f64 + Sync) -> Laplacian {
-        let mut weight = vec![0f32; g.targets.len()];
-        for_row_blocks(&g.offsets, &mut weight, |rows, out| {
-            let mut e = 0;
-            for i in rows {
-                let nb = g.neighbours(i);
-                let total: f64 = nb.iter().map(|&j| affinity(i, j as usize)).sum();
-                for &j in nb {
-                    out[e] = if total > 0.0 { (affinity(i, j as usize) / total) as f32 } else { 0.0 };
-                    e += 1;
-                }
-            }
-        });
-        let diagonal = (0..g.nodes())
+/// The unnormalised affinity `a(i, j) >= 0` of a Laplacian.
+#[derive(Debug, Clone, Copy)]
+enum Affinity<'a> {
+    /// `|p_i - p_j|`.
+    Distance(&'a [[f64; 3]]),
+    /// `r_j`.
+    Radius(&'a [f64]),
+    /// `|r_i - r_j|`.
+    Difference(&'a [f64]),
+}
+
+impl Affinity<'_> {
+    #[inline(always)]
+    fn at(self, i: usize, j: usize) -> f64 {
+        match self {
+            Affinity::Distance(p) => distance(&p[i], &p[j]),
+            Affinity::Radius(r) => r[j],
+            Affinity::Difference(r) => (r[i] - r[j]).abs(),
+        }
+    }
+}
+
+impl<'a> Laplacian<'a> {
+    /// Row-normalised weights from an unnormalised affinity.
+    fn new(g: &Csr, affinity: Affinity<'a>) -> Laplacian<'a> {
+        let total = (0..g.nodes())
             .into_par_iter()
-            .map(|i| if weight[g.offsets[i]..g.offsets[i + 1]].iter().any(|&w| w > 0.0) { -1.0 } else { 0.0 })
+            .with_min_len(4096)
+            .map(|i| g.neighbours(i).iter().map(|&j| affinity.at(i, j as usize)).sum())
             .collect();
-        Laplacian { weight, diagonal }
+        Laplacian { affinity, total }
+    }
+
+    /// `W_ij` for an edge `i — j`: 0 in a row whose affinities sum to 0 (or NaN).
+    #[inline(always)]
+    pub fn weight(&self, i: usize, j: usize) -> f32 {
+        let total = self.total[i];
+        if total > 0.0 {
+            (self.affinity.at(i, j) / total) as f32
+        } else {
+            0.0
+        }
+    }
+
+    /// `L_ii`: `-1`, or `0` for a row with no weight (a positive total has an affinity
+    /// of at least `total / degree`, so some weight of its row is positive).
+    #[inline(always)]
+    pub fn diagonal(&self, i: usize) -> f32 {
+        if self.total[i] > 0.0 {
+            -1.0
+        } else {
+            0.0
+        }
     }
 }
 
@@ -50,16 +86,16 @@ fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 }
 
 /// l2-norm Laplacian: `W_ij = |p_i - p_j| / sum_k |p_i - p_k|` (eq. 2).
-pub fn l2_norm(g: &Csr, positions: &[[f64; 3]]) -> Laplacian {
-    Laplacian::from_affinity(g, |i, j| distance(&positions[i], &positions[j]))
+pub fn l2_norm<'a>(g: &Csr, positions: &'a [[f64; 3]]) -> Laplacian<'a> {
+    Laplacian::new(g, Affinity::Distance(positions))
 }
 
 /// Medial Laplacian: `W_ij = r_j / sum_k r_k` (the authors' code, default) or
 /// `|r_i - r_j| / sum_k |r_i - r_k|` (eq. 3).
-pub fn medial(g: &Csr, radii: &[f64], kind: MedialWeight) -> Laplacian {
+pub fn medial<'a>(g: &Csr, radii: &'a [f64], kind: MedialWeight) -> Laplacian<'a> {
     match kind {
-        MedialWeight::Radius => Laplacian::from_affinity(g, |_, j| radii[j]),
-        MedialWeight::Difference => Laplacian::from_affinity(g, |i, j| (radii[i] - radii[j]).abs()),
+        MedialWeight::Radius => Laplacian::new(g, Affinity::Radius(radii)),
+        MedialWeight::Difference => Laplacian::new(g, Affinity::Difference(radii)),
     }
 }
 
@@ -127,32 +163,43 @@ mod tests {
         Csr::from_sorted_edges(n as usize, &e)
     }
 
+    /// Row `i`'s weights, in neighbour order.
+    fn row(l: &Laplacian<'_>, g: &Csr, i: usize) -> Vec<f32> {
+        g.neighbours(i).iter().map(|&j| l.weight(i, j as usize)).collect()
+    }
+
     #[test]
     fn l2_weights_are_row_normalised_and_transposed() {
         let g = path(3);
         let p = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [4.0, 0.0, 0.0]];
         let l = l2_norm(&g, &p);
         // Row 1: neighbours at distance 1 and 3.
-        assert_eq!(&l.weight[1..3], &[0.25, 0.75]);
-        assert_eq!(l.weight[0], 1.0);
+        assert_eq!(row(&l, &g, 1), [0.25, 0.75]);
+        assert_eq!(row(&l, &g, 0), [1.0]);
         // The transpose of entry 1 → 0 is W_01 = 1.
-        assert_eq!(l.weight[g.twin(0, 1)], 1.0);
-        assert_eq!(l.diagonal, vec![-1.0; 3]);
+        assert_eq!(l.weight(0, 1), 1.0);
+        assert_eq!(l.weight(1, 0), 0.25);
+        assert!((0..3).all(|i| l.diagonal(i) == -1.0));
     }
 
     #[test]
-    fn twins_point_back() {
-        // A random graph: the twin of entry i → j is the entry j → i.
+    fn weights_are_what_a_stored_array_would_hold() {
+        // A random graph with random positions: every weight is the affinity over its
+        // row's sum, summed in neighbour order, rounded to f32 once.
         let mut rnd = crate::test_rng(11);
         let n = 500;
         let (g, _) = crate::test_graph(n, (0..4 * n).map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32)));
+        let p: Vec<[f64; 3]> = (0..n).map(|_| [0, 1, 2].map(|_| rnd(1000) as f64 / 7.0)).collect();
+        let l = l2_norm(&g, &p);
         for i in 0..n {
-            for (e, &j) in (g.offsets[i]..).zip(g.neighbours(i)) {
-                let t = g.twin(j as usize, i);
-                assert_eq!(g.targets[t] as usize, i);
-                assert!((g.offsets[j as usize]..g.offsets[j as usize + 1]).contains(&t));
-                assert_eq!(g.twin(i, j as usize), e);
+            let nb = g.neighbours(i);
+            let total: f64 = nb.iter().map(|&j| distance(&p[i], &p[j as usize])).sum();
+            for &j in nb {
+                let want = if total > 0.0 { (distance(&p[i], &p[j as usize]) / total) as f32 } else { 0.0 };
+                assert_eq!(l.weight(i, j as usize).to_bits(), want.to_bits());
             }
+            let any = row(&l, &g, i).iter().any(|&w| w > 0.0);
+            assert_eq!(l.diagonal(i), if any { -1.0 } else { 0.0 });
         }
     }
 
@@ -161,11 +208,10 @@ mod tests {
         let g = path(3);
         let r = [2.0, 2.0, 2.0];
         let l = medial(&g, &r, MedialWeight::Difference);
-        assert!(l.weight.iter().all(|&w| w == 0.0));
-        assert_eq!(l.diagonal, vec![0.0; 3]);
+        assert!((0..3).all(|i| row(&l, &g, i).iter().all(|&w| w == 0.0) && l.diagonal(i) == 0.0));
         let l = medial(&g, &[1.0, 3.0, 1.0], MedialWeight::Radius);
-        assert_eq!(l.weight[0], 1.0);
-        assert_eq!(&l.weight[1..3], &[0.5, 0.5]);
+        assert_eq!(row(&l, &g, 0), [1.0]);
+        assert_eq!(row(&l, &g, 1), [0.5, 0.5]);
     }
 
     #[test]

@@ -123,21 +123,22 @@ pub fn contract_step_mapped(
     cancel::checkpoint()?;
     let order = axes.map(|axes| clock.time("solve", || slab_order(&g.positions, c, axes)));
     cancel::checkpoint()?;
-    // The Laplacians are dropped once `M` is assembled: the right-hand side comes from
-    // `M` itself, and the conjugate-gradient vectors are allocated after.
-    // The radii and components are not read again until the decimation, nor the graph
-    // once `M` is assembled: they wait packed ([`crate::packed`]) while the solve runs.
-    let (m, nodes) = {
+    // The Laplacians (one row total per node: their weights are computed as `M` reads
+    // them) are dropped once `M` is assembled: the right-hand side comes from `M`
+    // itself, and the conjugate-gradient vectors are allocated after. The radii and
+    // components are not read again until the decimation, nor the graph once `M` is
+    // assembled: they wait packed ([`crate::packed`]) while the solve runs.
+    let m = {
         let (ln, lm) = clock.time("laplacian", || {
             (laplacian::l2_norm(&g.graph, &g.positions), laplacian::medial(&g.graph, &g.radii, p.medial_weight))
         });
         cancel::checkpoint()?;
-        let nodes =
-            clock.time("solve", || PackedNodes::new(std::mem::take(&mut g.radii), std::mem::take(&mut g.component)));
         return_free_memory();
         let op = NormalOperator::new(&g.graph, &ln, &lm, &skeletal, p);
-        (clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref())), nodes)
+        clock.time("solve", || NormalMatrix::assemble(&op, order.as_deref()))
     };
+    let nodes =
+        clock.time("solve", || PackedNodes::new(std::mem::take(&mut g.radii), std::mem::take(&mut g.component)));
     // The assembly stops early too (a partial matrix).
     cancel::checkpoint()?;
     let start = match &order {

@@ -30,7 +30,7 @@
 use crate::grid::Csr;
 use crate::laplacian::Laplacian;
 use crate::params::Params;
-use crate::precondition::{sum_parts, Krylov, NormalMatrix, V3};
+use crate::precondition::{sum_parts, Krylov, NormalMatrix, F3, V3};
 use rayon::prelude::*;
 
 /// Entries per parallel chunk of the vector reductions.
@@ -39,8 +39,8 @@ const CHUNK: usize = 8192;
 /// The normal-equations operator of eq. 8.
 pub struct NormalOperator<'a> {
     pub graph: &'a Csr,
-    pub ln: &'a Laplacian,
-    pub lm: &'a Laplacian,
+    pub ln: &'a Laplacian<'a>,
+    pub lm: &'a Laplacian<'a>,
     /// `alpha²`, `beta²`.
     pub a2: f64,
     pub b2: f64,
@@ -54,7 +54,13 @@ pub struct NormalOperator<'a> {
 impl<'a> NormalOperator<'a> {
     /// The operator of one contraction iteration: `alpha`, `beta` from `params`, and
     /// anchoring `gamma` (`eps_gamma * gamma` for skeleton-like nodes).
-    pub fn new(graph: &'a Csr, ln: &'a Laplacian, lm: &'a Laplacian, skeletal: &'a [bool], params: &Params) -> Self {
+    pub fn new(
+        graph: &'a Csr,
+        ln: &'a Laplacian<'a>,
+        lm: &'a Laplacian<'a>,
+        skeletal: &'a [bool],
+        params: &Params,
+    ) -> Self {
         let anchor2 = crate::laplacian::anchors(params).map(|w| w * w);
         NormalOperator {
             graph,
@@ -75,7 +81,7 @@ impl<'a> NormalOperator<'a> {
 }
 
 /// Per-coordinate `sum_i w_i y_i[c]²`, reduced over fixed chunks.
-fn weighted_norms(w: &[f32], y: &[V3]) -> V3 {
+fn weighted_norms(w: &[f32], y: &[F3]) -> V3 {
     let parts: Vec<V3> = w
         .par_chunks(CHUNK)
         .zip(y.par_chunks(CHUNK))
@@ -83,7 +89,8 @@ fn weighted_norms(w: &[f32], y: &[V3]) -> V3 {
             let mut s = [0.0; 3];
             for (&wi, yi) in wc.iter().zip(yc) {
                 for c in 0..3 {
-                    s[c] += wi as f64 * yi[c] * yi[c];
+                    let yi = yi[c] as f64;
+                    s[c] += wi as f64 * yi * yi;
                 }
             }
             s
@@ -189,7 +196,9 @@ pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations:
         rz = rz_new;
     }
     // The last step's update of `x`.
-    k.x.par_iter_mut().zip(k.s.par_iter()).for_each(|(x, s)| *x = std::array::from_fn(|c| x[c] + step[c] * s[c]));
+    k.x.par_iter_mut()
+        .zip(k.s.par_iter())
+        .for_each(|(x, s)| *x = std::array::from_fn(|c| x[c] + step[c] * s[c] as f64));
     let converged = !active.iter().any(|&a| a);
     (k.x, SolveStats { iterations, converged })
 }
@@ -201,14 +210,14 @@ mod tests {
     use crate::params::MedialWeight;
 
     /// Dense `M = a² LnᵀLn + b² LmᵀLm + diag(w²)`.
-    fn dense_normal(g: &Csr, ln: &Laplacian, lm: &Laplacian, a: f64, b: f64, w: &[f64]) -> Vec<Vec<f64>> {
+    fn dense_normal(g: &Csr, ln: &Laplacian<'_>, lm: &Laplacian<'_>, a: f64, b: f64, w: &[f64]) -> Vec<Vec<f64>> {
         let n = g.nodes();
-        let mat = |l: &Laplacian| {
+        let mat = |l: &Laplacian<'_>| {
             let mut m = vec![vec![0.0; n]; n];
             for i in 0..n {
-                m[i][i] = l.diagonal[i] as f64;
-                for e in g.offsets[i]..g.offsets[i + 1] {
-                    m[i][g.targets[e] as usize] = l.weight[e] as f64;
+                m[i][i] = l.diagonal(i) as f64;
+                for &j in g.neighbours(i) {
+                    m[i][j as usize] = l.weight(i, j as usize) as f64;
                 }
             }
             m
@@ -258,18 +267,19 @@ mod tests {
     }
 
     /// Dense least squares of eq. 8 by Gaussian elimination on the normal equations.
-    fn dense(g: &Csr, ln: &Laplacian, lm: &Laplacian, a: f64, b: f64, w: &[f64], p: &[V3]) -> Vec<V3> {
+    fn dense(g: &Csr, ln: &Laplacian<'_>, lm: &Laplacian<'_>, a: f64, b: f64, w: &[f64], p: &[V3]) -> Vec<V3> {
         let m = dense_normal(g, ln, lm, a, b, w);
         let rhs: Vec<V3> = (0..p.len()).map(|i| p[i].map(|x| w[i] * w[i] * x)).collect();
         gauss(&m, &rhs)
     }
 
-    /// A test problem: the Laplacians and anchors of a graph with geometry.
+    /// A test problem: the Laplacians and anchors of a graph with geometry (leaked, so
+    /// that the Laplacians can borrow them for the test's lifetime).
     struct Problem {
         g: Csr,
-        p: Vec<V3>,
-        ln: Laplacian,
-        lm: Laplacian,
+        p: &'static [V3],
+        ln: Laplacian<'static>,
+        lm: Laplacian<'static>,
         /// The anchored-harder nodes, and every node's anchoring `Wg` (0.5 or 0.05).
         hard: Vec<bool>,
         w: Vec<f64>,
@@ -277,7 +287,8 @@ mod tests {
 
     impl Problem {
         fn new(g: Csr, p: Vec<V3>, radii: &[f64], hard: Vec<bool>) -> Problem {
-            let ln = l2_norm(&g, &p);
+            let (p, radii): (&'static [V3], &'static [f64]) = (p.leak(), radii.to_vec().leak());
+            let ln = l2_norm(&g, p);
             let lm = medial(&g, radii, MedialWeight::Radius);
             let w = hard.iter().map(|&h| if h { 0.5 } else { 0.05 }).collect();
             Problem { g, p, ln, lm, hard, w }
@@ -297,7 +308,7 @@ mod tests {
 
         /// The right-hand side `-(M - Wg²) P` of the displacement system.
         fn rhs(&self) -> Vec<V3> {
-            super::reference::rhs(&self.op(), &self.p)
+            super::reference::rhs(&self.op(), self.p)
         }
     }
 
@@ -353,17 +364,17 @@ mod tests {
     #[test]
     fn matches_dense_least_squares() {
         let pb = patch();
-        let (fast, stats) = contract(&pb.op(), &pb.p, 1e-12, 1000);
+        let (fast, stats) = contract(&pb.op(), pb.p, 1e-12, 1000);
         assert!(stats.converged);
-        let slow = dense(&pb.g, &pb.ln, &pb.lm, 0.5, 0.5, &pb.w, &pb.p);
+        let slow = dense(&pb.g, &pb.ln, &pb.lm, 0.5, 0.5, &pb.w, pb.p);
         // `M` is stored in f32 (like the Laplacian weights it is built from), so the
         // solution carries its relative rounding, ~1e-7.
         assert!(max_diff(&fast, &slow) < 1e-6, "{fast:?} vs {slow:?}");
         // The previous solver (matrix-free, f64 throughout) agrees to 1e-8.
-        let (old, _) = super::reference::jacobi_contract(&pb.op(), &pb.p, 1e-12, 1000);
+        let (old, _) = super::reference::jacobi_contract(&pb.op(), pb.p, 1e-12, 1000);
         assert!(max_diff(&old, &slow) < 1e-8);
         // The flow moved the nodes: the solution is not the input.
-        assert!(fast.iter().zip(&pb.p).any(|(a, b)| (a[0] - b[0]).abs() > 1e-3));
+        assert!(fast.iter().zip(pb.p).any(|(a, b)| (a[0] - b[0]).abs() > 1e-3));
     }
 
     /// The stored `M`, dense, read column by column as `M e_k` (each product adds one
@@ -439,7 +450,7 @@ mod tests {
             let far: Vec<V3> = pb.p.iter().map(|q| q.map(|v| v + 1e4)).collect();
             for bs in [1, 7, n] {
                 let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
-                let got = m.displacement_rhs(&pb.p);
+                let got = m.displacement_rhs(pb.p);
                 // `M` is stored in f32: its relative rounding, ~1e-7.
                 assert!(max_diff(&got, &want) <= 1e-6 * scale, "block {bs}");
                 // Positions 1e4 away give the same right-hand side to f64 rounding.
@@ -521,21 +532,23 @@ mod tests {
 
     #[test]
     fn eisenstat_form_equals_explicit_preconditioned_cg() {
+        // The solver keeps three of its vectors in f32, so it follows the explicit f64
+        // iteration to about f32's precision, and reaches a relative residual of 1e-6.
         let pb = block(6, 7, 8);
         let b = pb.rhs();
         for bs in [b.len(), 64, 25] {
             let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
-            let (want, k) = explicit_pcg(&m, &b, 1e-10, 500);
-            let (got, stats) = solve(&m, vec![[0.0; 3]; b.len()], b.clone(), 1e-10, 500);
+            let (want, k) = explicit_pcg(&m, &b, 1e-6, 500);
+            let (got, stats) = solve(&m, vec![[0.0; 3]; b.len()], b.clone(), 1e-6, 500);
             assert!(stats.converged);
-            assert_eq!(stats.iterations, k, "block {bs}");
-            assert!(max_diff(&got, &want) < 1e-9, "block {bs}");
+            assert!(stats.iterations.abs_diff(k) <= 1, "block {bs}: {} vs {k}", stats.iterations);
+            assert!(max_diff(&got, &want) < 1e-5, "block {bs}: {}", max_diff(&got, &want));
             // And it solves the assembled system: M x = b to the tolerance.
             let mut mx = vec![[0.0; 3]; b.len()];
             m.apply_dot(&got, &mut mx);
             let res: Vec<V3> = mx.iter().zip(&b).map(|(x, y)| std::array::from_fn(|c| x[c] - y[c])).collect();
             let (rr, bb) = (dot(&res, &res), dot(&b, &b));
-            assert!((0..3).all(|c| rr[c].sqrt() <= 2e-10 * bb[c].sqrt()), "{rr:?}");
+            assert!((0..3).all(|c| rr[c].sqrt() <= 2e-6 * bb[c].sqrt()), "{rr:?}");
         }
     }
 
@@ -546,11 +559,15 @@ mod tests {
         let n = m.rows();
         let dense_m = stored(&m);
         let b = pb.rhs();
-        let (got, stats) = solve(&m, vec![[0.0; 3]; n], b.clone(), 1e-13, 1000);
+        // Three of the solver's vectors are f32: it reaches a relative residual of
+        // 1e-6, not f64's.
+        let (got, stats) = solve(&m, vec![[0.0; 3]; n], b.clone(), 1e-6, 1000);
         assert!(stats.converged && stats.iterations < n);
-        assert!(max_diff(&got, &gauss(&dense_m, &b)) < 1e-8);
+        let exact = gauss(&dense_m, &b);
+        let scale = exact.iter().flatten().fold(0f64, |a, v| a.max(v.abs()));
+        assert!(max_diff(&got, &exact) < 1e-5 * scale, "{} vs {scale}", max_diff(&got, &exact));
         // Fewer iterations than Jacobi-preconditioned CG on the same system.
-        let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), &pb.p, 1e-13, 1000);
+        let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), pb.p, 1e-6, 1000);
         assert!(stats.iterations < jacobi.iterations, "{stats:?} vs {jacobi:?}");
     }
 
@@ -586,13 +603,13 @@ mod tests {
         let run = |threads: usize, block: Option<usize>| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| match block {
-                None => contract(&pb.op(), &pb.p, 1e-8, 500),
+                None => contract(&pb.op(), pb.p, 1e-8, 500),
                 Some(bs) => {
-                    solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs, None), pb.p.clone(), pb.rhs(), 1e-8, 500)
+                    solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs, None), pb.p.to_vec(), pb.rhs(), 1e-8, 500)
                 }
             })
         };
-        let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), &pb.p, 1e-8, 500);
+        let (_, jacobi) = super::reference::jacobi_contract(&pb.op(), pb.p, 1e-8, 500);
         for block in [None, Some(1000)] {
             let (one, s1) = run(1, block);
             assert!(s1.converged);
@@ -614,12 +631,11 @@ mod reference {
     use super::*;
 
     /// `(L x)_i` for one node.
-    fn apply_row(g: &Csr, w: &[f32], diag: &[f32], x: &[V3], i: usize) -> V3 {
-        let d = diag[i] as f64;
+    fn apply_row(g: &Csr, l: &Laplacian<'_>, x: &[V3], i: usize) -> V3 {
+        let d = l.diagonal(i) as f64;
         let mut y = [d * x[i][0], d * x[i][1], d * x[i][2]];
-        let (lo, hi) = (g.offsets[i], g.offsets[i + 1]);
-        for (e, &j) in (lo..hi).zip(&g.targets[lo..hi]) {
-            let wij = w[e] as f64;
+        for &j in g.neighbours(i) {
+            let wij = l.weight(i, j as usize) as f64;
             let xj = &x[j as usize];
             y[0] += wij * xj[0];
             y[1] += wij * xj[1];
@@ -628,14 +644,14 @@ mod reference {
         y
     }
 
-    /// `(Lnᵀ un)_j` and `(Lmᵀ um)_j`, reading `W_ij` at the twin of entry `j → i`.
-    fn transposed_row(g: &Csr, ln: &Laplacian, lm: &Laplacian, un: &[V3], um: &[V3], j: usize) -> (V3, V3) {
-        let (dn, dm) = (ln.diagonal[j] as f64, lm.diagonal[j] as f64);
+    /// `(Lnᵀ un)_j` and `(Lmᵀ um)_j`, over the weights `W_ij` of `j`'s neighbours `i`.
+    fn transposed_row(g: &Csr, ln: &Laplacian<'_>, lm: &Laplacian<'_>, un: &[V3], um: &[V3], j: usize) -> (V3, V3) {
+        let (dn, dm) = (ln.diagonal(j) as f64, lm.diagonal(j) as f64);
         let mut a = un[j].map(|v| dn * v);
         let mut b = um[j].map(|v| dm * v);
         for &i in g.neighbours(j) {
-            let (i, t) = (i as usize, g.twin(i as usize, j));
-            let (wn, wm) = (ln.weight[t] as f64, lm.weight[t] as f64);
+            let i = i as usize;
+            let (wn, wm) = (ln.weight(i, j) as f64, lm.weight(i, j) as f64);
             for c in 0..3 {
                 a[c] += wn * un[i][c];
                 b[c] += wm * um[i][c];
@@ -649,8 +665,8 @@ mod reference {
         fn forward(&self, x: &[V3], un: &mut [V3], um: &mut [V3]) {
             let g = self.graph;
             un.par_iter_mut().zip(um.par_iter_mut()).enumerate().with_min_len(1024).for_each(|(i, (a, b))| {
-                *a = apply_row(g, &self.ln.weight, &self.ln.diagonal, x, i);
-                *b = apply_row(g, &self.lm.weight, &self.lm.diagonal, x, i);
+                *a = apply_row(g, self.ln, x, i);
+                *b = apply_row(g, self.lm, x, i);
             });
         }
 
@@ -672,16 +688,15 @@ mod reference {
         pub fn diagonal(&self) -> Vec<f64> {
             let g = self.graph;
             let mut sq = vec![0f64; g.nodes()];
-            // diag(LᵀL)_j = sum_i L_ij² = L_jj² + sum over j's neighbours i of W_ij², read at
-            // the twins of j's entries.
+            // diag(LᵀL)_j = sum_i L_ij² = L_jj² + sum over j's neighbours i of W_ij².
             sq.par_iter_mut().enumerate().for_each(|(j, s)| {
-                let (dn, dm) = (self.ln.diagonal[j] as f64, self.lm.diagonal[j] as f64);
+                let (dn, dm) = (self.ln.diagonal(j) as f64, self.lm.diagonal(j) as f64);
                 let col: f64 = g
                     .neighbours(j)
                     .iter()
                     .map(|&i| {
-                        let t = g.twin(i as usize, j);
-                        let (wn, wm) = (self.ln.weight[t] as f64, self.lm.weight[t] as f64);
+                        let i = i as usize;
+                        let (wn, wm) = (self.ln.weight(i, j) as f64, self.lm.weight(i, j) as f64);
                         self.a2 * wn * wn + self.b2 * wm * wm
                     })
                     .sum();
