@@ -14,7 +14,7 @@
 //! | count | row offsets of the foreground | `8 n0 n1` |
 //! | edt | row offsets; the EDT at the `N` foreground voxels (`f32`); one plane of run lengths (`u32`); per thread a plane buffer (`f32`, resident only where written) and envelope scratch | `8 n0 n1 + 4 N + 4 n1 n2 + T (4 min(n1 n2, N) + 40 max(n1, n2))` |
 //! | grid | the EDT; the foreground rows (`8 n0 n1 + 4 N`); per node its base-neighbour slots, degree, CSR, union-find, positions, radii, components | `8 n0 n1 + GRID[c] N` |
-//! | contract | skeletal flags and slab order; while `M` is assembled the node graph's CSR and positions, its radii and components packed, and the l2-norm and medial Laplacians; during the solve the whole node graph packed ([`crate::packed`], ~15 bytes a node on the 256³ bed), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) and the four conjugate-gradient vectors (96 bytes) | `CONTRACT[c] N` |
+//! | contract | skeletal flags and slab order; while `M` is assembled the node graph (CSR, positions, radii, components) and the l2-norm and medial Laplacians (one `f64` row total per node each: their weights are computed as `M` reads them); during the solve the whole node graph packed ([`crate::packed`], ~15 bytes a node on the 256³ bed), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) and the four conjugate-gradient vectors (one `f64`, three `f32`: 60 bytes) | `CONTRACT[c] N` |
 //!
 //! `CONTRACT[c]` (bytes per foreground voxel at connectivity `c`) is the largest
 //! measured peak, over the mask and [`BASE`], with a margin of at least 10 %: the
