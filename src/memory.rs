@@ -20,7 +20,8 @@
 //! measured peak, over the mask and [`BASE`], with a margin of at least 10 %: the
 //! peak RSS of a run from Python at 2 threads minus the RSS once the mask is loaded,
 //! on the 256³ synthetic bed (223 B per foreground voxel at 6-connectivity; ~194 B since
-//! the node graph is packed during the solve, so the bound now has more margin there) and the 18
+//! the node graph is packed during the solve, ~170 B since the Laplacians keep row totals
+//! only and three solver vectors are `f32`, so the bound now has more margin there) and the 18
 //! volumes of `../shared/data` (6: 224–305 over those with more than 50 000
 //! foreground voxels, the most on the thick vessels of `aorta_ct_03mm` and the
 //! two-photon stacks, 304 and 304 on `tpm_santos2015`; 18: 420–591; 26: 545–782, the
