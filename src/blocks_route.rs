@@ -6,7 +6,9 @@
 //!   voxel ([`owner_voxel`]: the voxel its midpoint rounds to, clamped to the volume),
 //!   so it has exactly one owner, whatever the float differences between blocks.
 //! - **Block** ([`Skeletonizer::route_block`]): the worker reads its block with a halo,
-//!   computes the distance transform of block plus halo and routes its owned edges,
+//!   keeps the owned edges that cross background in that read (the others are left as
+//!   they are, as the single run's routing leaves them; a block with none stops there),
+//!   computes the distance transform of block plus halo and routes those edges,
 //!   each in a box that must lie in the read: the edge's bounding box grown by the
 //!   routing's reach ([`needed_margin`]: the nearest-foreground search, the climb's
 //!   reach, counted twice so that the distance transform there is the whole volume's,
@@ -17,7 +19,7 @@
 //!   then edge order: the same graph, bit for bit, for any worker count.
 
 use crate::blocks::{block_pool, check_core};
-use crate::edges_inside::{route_with_radii, PATH_MARGIN};
+use crate::edges_inside::{outside_run, route_with_radii, PATH_MARGIN};
 use crate::error::{Error, Result};
 use crate::graph::Skeleton;
 use crate::grid::Csr;
@@ -102,13 +104,17 @@ impl Skeletonizer {
             }
             pairs.push((la, lb));
         }
+        let shifted: Vec<[f64; 3]> =
+            positions.iter().map(|q| std::array::from_fn(|d| q[d] - origin[d] as f64 * spacing[d])).collect();
+        // Only the edges that cross background are routed (the routing's own first test,
+        // [`outside_run`]): the others keep their place, need no halo and no distance
+        // transform, which a block whose edges all stay inside then never computes.
+        pairs.retain(|&(a, b)| outside_run(&mask, shifted[a as usize], shifted[b as usize], spacing).is_some());
         if pairs.is_empty() {
             return Ok(RoutedPart::default());
         }
         let pool = block_pool(self.params().threads)?;
         let field = pool.install(|| Field::new(mask, spacing))?;
-        let shifted: Vec<[f64; 3]> =
-            positions.iter().map(|q| std::array::from_fn(|d| q[d] - origin[d] as f64 * spacing[d])).collect();
 
         // The halo every owned edge needs; the read must hold it, except at the volume's faces.
         let mut need = [0i64; 3];
