@@ -27,7 +27,7 @@
 
 use crate::grid::Csr;
 use crate::inside::voxel_of;
-use crate::vec3::{base_cell, dot, sub};
+use crate::vec3::{base_cell, dot, norm, sub, unit};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -55,14 +55,11 @@ fn direction(g: &Csr, positions: &[[f64; 3]], i: usize, reach: f64) -> Option<[f
         let next = if nb[0] as usize == prev { nb[1] } else { nb[0] } as usize;
         (prev, cur) = (cur, next);
     }
-    let (p, q) = (positions[i], positions[cur]);
-    let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
-    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    (n > 0.0).then(|| [d[0] / n, d[1] / n, d[2] / n])
+    unit(sub(positions[i], positions[cur]))
 }
 
 fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    norm(sub(*a, *b))
 }
 
 /// Every degree-1 node inside the mask mapped by `step(p, u, r, c)`: its position,

@@ -8,6 +8,7 @@
 
 use crate::grid::Csr;
 use crate::params::{MedialWeight, Params};
+use crate::vec3::{norm, sub};
 use rayon::prelude::*;
 
 /// One Laplacian: `(L x)_i = diagonal(i) x_i + sum_j weight(i, j) x_j` over the
@@ -81,8 +82,7 @@ impl<'a> Laplacian<'a> {
 }
 
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+    norm(sub(*a, *b))
 }
 
 /// l2-norm Laplacian: `W_ij = |p_i - p_j| / sum_k |p_i - p_k|` (eq. 2).
