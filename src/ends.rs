@@ -109,7 +109,7 @@ pub fn extend_ends<T: Voxel>(
 
 /// The voxels that the graph's edges pass through (sampled [`STEPS_PER_CELL`] times
 /// per base cell, as the ends' lines are), as sorted linear indices into the mask.
-fn edge_voxels(g: &Csr, positions: &[[f64; 3]], shape: [usize; 3], spacing: [f64; 3]) -> Vec<usize> {
+pub(crate) fn edge_voxels(g: &Csr, positions: &[[f64; 3]], shape: [usize; 3], spacing: [f64; 3]) -> Vec<usize> {
     let c = base_cell(spacing);
     let mut out: Vec<usize> = g
         .edge_list()

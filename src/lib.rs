@@ -66,6 +66,7 @@ pub mod radius;
 pub mod resample;
 pub mod shapes;
 pub mod solver;
+pub mod sprouts;
 mod vec3;
 pub mod volume;
 

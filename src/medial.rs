@@ -128,6 +128,66 @@ impl Field {
         Ok(Field { shape: [n0, n1, n2], spacing, starts, ks, dist })
     }
 
+    /// The array's shape.
+    pub fn shape(&self) -> [usize; 3] {
+        self.shape
+    }
+
+    /// The number of foreground voxels: the range of [`Field::index`].
+    pub fn count(&self) -> usize {
+        self.dist.len()
+    }
+
+    /// The index of voxel `v` among the foreground voxels (in row order), `None` on
+    /// background.
+    pub fn index(&self, v: [usize; 3]) -> Option<usize> {
+        let r = v[0] * self.shape[1] + v[1];
+        let (a, b) = (self.starts[r], self.starts[r + 1]);
+        self.ks[a..b].binary_search(&(v[2] as u32)).ok().map(|t| a + t)
+    }
+
+    /// The row (`i0 * n1 + i1`) of foreground index `i`.
+    pub fn row(&self, i: usize) -> usize {
+        self.starts.partition_point(|&s| s <= i) - 1
+    }
+
+    /// The voxel of foreground index `i`.
+    pub fn voxel(&self, i: usize) -> [usize; 3] {
+        let r = self.row(i);
+        [r / self.shape[1], r % self.shape[1], self.ks[i] as usize]
+    }
+
+    /// The transform at foreground index `i`, in base cells.
+    pub fn dist_at(&self, i: usize) -> f64 {
+        self.dist[i] as f64
+    }
+
+    /// Calls `f(o, j, row)` for every foreground 26-neighbour `j` (in `row`, see
+    /// [`Field::row`]) of foreground index `i` in `row`, in index order; `o` is the
+    /// offset's number `9 (d0 + 1) + 3 (d1 + 1) + d2 + 1`.
+    pub fn for_neighbours(&self, i: usize, row: usize, mut f: impl FnMut(usize, usize, usize)) {
+        let (r0, r1) = (row / self.shape[1], row % self.shape[1]);
+        let k = self.ks[i];
+        for d0 in 0..3 {
+            for d1 in 0..3 {
+                let (a0, a1) = ((r0 + d0).wrapping_sub(1), (r1 + d1).wrapping_sub(1));
+                if a0 >= self.shape[0] || a1 >= self.shape[1] {
+                    continue;
+                }
+                let r = a0 * self.shape[1] + a1;
+                let (a, b) = (self.starts[r], self.starts[r + 1]);
+                let ks = &self.ks[a..b];
+                let from = ks.partition_point(|&x| x + 1 < k);
+                for (t, &x) in ks[from..].iter().enumerate().take_while(|(_, &x)| x <= k + 1) {
+                    let o = 9 * d0 + 3 * d1 + (x + 1 - k) as usize;
+                    if o != 13 {
+                        f(o, a + from + t, r);
+                    }
+                }
+            }
+        }
+    }
+
     /// The transform at voxel `v`, in base cells (0 on background and outside the array).
     pub fn at(&self, v: [isize; 3]) -> f64 {
         if (0..3).any(|d| v[d] < 0 || v[d] >= self.shape[d] as isize) {
@@ -461,6 +521,37 @@ mod tests {
     use super::*;
     use crate::volume::edt_squared;
     use ndarray::Array3;
+
+    /// Foreground indices run over the foreground voxels in row order, `voxel` and
+    /// `row` invert `index`, and `for_neighbours` gives exactly the foreground
+    /// 26-neighbours, each with its offset and row, in index order.
+    #[test]
+    fn foreground_indices_and_neighbours_match_the_mask() {
+        let mut rnd = crate::test_rng(9);
+        let m = Array3::from_shape_fn((6, 7, 8), |_| u8::from(rnd(100) < 40));
+        let f = Field::new(m.view(), [1.0, 2.0, 0.5]).unwrap();
+        let fg: Vec<[usize; 3]> = m.indexed_iter().filter(|(_, &x)| x != 0).map(|(v, _)| [v.0, v.1, v.2]).collect();
+        assert_eq!(f.count(), fg.len());
+        for (i, &v) in fg.iter().enumerate() {
+            assert_eq!((f.index(v), f.voxel(i), f.row(i)), (Some(i), v, v[0] * 7 + v[1]));
+            let mut got = vec![];
+            f.for_neighbours(i, f.row(i), |o, j, row| got.push((o, j, row)));
+            let mut want = vec![];
+            for (o, w) in (0..27).map(|o| (o, [o / 9, (o / 3) % 3, o % 3])) {
+                let u: [isize; 3] = std::array::from_fn(|d| v[d] as isize + w[d] as isize - 1);
+                if o == 13 || (0..3).any(|d| u[d] < 0 || u[d] >= [6, 7, 8][d]) {
+                    continue;
+                }
+                let u = u.map(|x| x as usize);
+                if m[u] != 0 {
+                    want.push((o, f.index(u).unwrap(), u[0] * 7 + u[1]));
+                }
+            }
+            want.sort_by_key(|&(_, j, _)| j);
+            assert_eq!(got, want);
+        }
+        assert_eq!(f.index([0, 0, 0]).is_some(), m[[0, 0, 0]] != 0);
+    }
 
     /// Random access gives the sparse transform's value at every foreground voxel, 0
     /// on background and outside the array; interpolation is exact at voxel centres

@@ -112,6 +112,11 @@ pub struct Params {
     /// to one radius inside the mask's end along its vessel (`ends`). The paper's test
     /// needs degree > 1; without this the flow pulls every free end inward.
     pub anchor_ends: bool,
+    /// At output, grow back the side branches the contraction swallowed into their
+    /// parent: lobes of the mask the graph does not reach become new branches from the
+    /// nearest edge ([`crate::sprouts`]). Single runs only: a chunked run's blocks grow
+    /// none (its graph is built from the voxels' nodes, and sprouts own no voxel).
+    pub sprouts: bool,
     /// Move every node, after refinement, onto the ridge of the distance transform:
     /// within its cross-section to the nearest local maximum, and every junction to
     /// where its branches' centrelines meet, each at most 0.6 radii away
@@ -174,6 +179,7 @@ impl Default for Params {
             medial_weight: MedialWeight::Radius,
             skeletal_angle: 10.0,
             anchor_ends: true,
+            sprouts: true,
             medial: true,
             eps_gamma: 10.0,
             alpha: 0.25,
@@ -240,7 +246,7 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 23] = [
+    pub const NAMES: [&'static str; 24] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
@@ -248,6 +254,7 @@ impl Params {
         "medial_weight",
         "skeletal_angle",
         "anchor_ends",
+        "sprouts",
         "medial",
         "eps_gamma",
         "alpha",
@@ -279,6 +286,7 @@ impl Params {
             }
             "reconnect_thin" => self.reconnect_thin = as_bool(name, v)?,
             "anchor_ends" => self.anchor_ends = as_bool(name, v)?,
+            "sprouts" => self.sprouts = as_bool(name, v)?,
             "medial" => self.medial = as_bool(name, v)?,
             "radius_correction" => self.radius_correction = in_range(name, as_f64(name, v)?, 0.0, 1.0, false)?,
             "medial_weight" => {
@@ -377,6 +385,7 @@ impl Params {
             ("medial_weight", Value::Str(mw.into())),
             ("skeletal_angle", Value::Float(self.skeletal_angle)),
             ("anchor_ends", Value::Bool(self.anchor_ends)),
+            ("sprouts", Value::Bool(self.sprouts)),
             ("medial", Value::Bool(self.medial)),
             ("eps_gamma", Value::Float(self.eps_gamma)),
             ("alpha", Value::Float(self.alpha)),

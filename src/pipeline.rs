@@ -21,6 +21,7 @@ use crate::precondition::{slab_axes, slab_order, NormalMatrix};
 use crate::radius::output_radii;
 use crate::resample;
 use crate::solver::{self, NormalOperator, SolveStats};
+use crate::sprouts::{sprout, Reach};
 use crate::vec3::base_cell;
 use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
 use ndarray::ArrayView3;
@@ -417,30 +418,60 @@ impl Skeletonizer {
                 clock.time("medial", || pool.install(|| medial::recentre(&g.graph, &g.positions, &g.radii, &field)));
         }
 
-        let out = clock.time("output", || {
+        let out = clock.time("output", || -> Result<Skeleton> {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             // The nodes the split added take the transform where they now sit.
             if p.coarse_cell > 0.0 {
                 resample::ridge_radii(&mut g.radii, &g.positions, split, &field);
             }
             let shift = p.radius_correction * c;
-            // One radius rule for every output node, the routed-in ones too.
-            let radii = pool.install(|| output_radii(&g.graph, &g.positions, &g.radii, mask, &field, spacing, shift));
-            let positions = if p.anchor_ends {
-                // A moved end can stop past a background voxel the line grazed
-                // between two samples: it is kept inside once more.
-                let ends = pool.install(|| extend_ends(&g.graph, &g.positions, &radii, mask, spacing));
-                let ends = pool.install(|| follow_ends(&g.graph, &ends, &radii, mask, spacing));
-                pool.install(|| keep_inside(&ends, mask, spacing))
-            } else {
-                std::mem::take(&mut g.positions)
+            // The graph's geodesic reach through the mask, for the sprouts, runs beside
+            // the radii and the ends (one thread of its own; it is a serial search).
+            // A block of a chunked run grows none: its sprouts' nodes would own no voxel,
+            // and the merge builds the graph from the voxels' nodes.
+            let sprouts = p.sprouts && !track;
+            let (reach, (radii, positions)) = pool.install(|| {
+                rayon::join(
+                    || sprouts.then(|| Reach::of(&g.graph, &g.positions, &field, spacing)).transpose(),
+                    || {
+                        // One radius rule for every output node, the routed-in ones too.
+                        let radii = output_radii(&g.graph, &g.positions, &g.radii, 0, mask, &field, spacing, shift);
+                        if !p.anchor_ends {
+                            return (radii, g.positions.clone());
+                        }
+                        // A moved end can stop past a background voxel the line grazed
+                        // between two samples: it is kept inside once more.
+                        let ends = extend_ends(&g.graph, &g.positions, &radii, mask, spacing);
+                        let ends = follow_ends(&g.graph, &ends, &radii, mask, spacing);
+                        (radii, keep_inside(&ends, mask, spacing))
+                    },
+                )
+            });
+            // Lost side branches grown back (`sprouts`); the new nodes take the one
+            // radius rule, from the transform where they sit.
+            let (graph, positions, radii) = match reach? {
+                Some(reach) => {
+                    let n = positions.len();
+                    let (graph, mut positions) = pool.install(|| sprout(reach, &g.graph, &positions, &radii))?;
+                    // Like every node, the new ones sit on a vessel voxel.
+                    let inside = keep_inside(&positions[n..], mask, spacing);
+                    positions[n..].copy_from_slice(&inside);
+                    let edt: Vec<f64> =
+                        g.radii.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();
+                    let mut radii = radii;
+                    radii.extend(
+                        pool.install(|| output_radii(&graph, &positions, &edt, n, mask, &field, spacing, shift)),
+                    );
+                    (graph, positions, radii)
+                }
+                None => (std::mem::take(&mut g.graph), positions, radii),
             };
             let (routed, inserted) =
-                pool.install(|| route_with_radii(&g.graph, &positions, &field, mask, spacing, shift));
+                pool.install(|| route_with_radii(&graph, &positions, &field, mask, spacing, shift));
             let mut radii = radii;
             radii.extend(inserted);
             let Routed { graph, positions, .. } = routed;
-            Skeleton {
+            Ok(Skeleton {
                 radii,
                 edges: graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
                 positions: positions
@@ -449,8 +480,8 @@ impl Skeletonizer {
                     .collect(),
                 spacing,
                 info: RunInfo::default(),
-            }
-        });
+            })
+        })?;
         stop.check()?;
         check_skeleton(&out)?;
         report(observer, "output", 0, out.positions.len(), f64::NAN)?;

@@ -584,19 +584,21 @@ fn ball_radius<T: Voxel>(mask: &ArrayView3<'_, T>, spacing: [f64; 3], p: [f64; 3
     (volume * 0.75 / std::f64::consts::PI).cbrt()
 }
 
-/// The radii of output nodes: [`OUTPUT_RADII`] less `shift` (the radius correction in
-/// physical units), floored at 0. The one rule for every output node, in a single run
-/// and in a chunked run's routing phase.
+/// The radii of output nodes `first..`: [`OUTPUT_RADII`] less `shift` (the radius
+/// correction in physical units), floored at 0. The one rule for every output node, in
+/// a single run and in a chunked run's routing phase.
+#[allow(clippy::too_many_arguments)]
 pub fn output_radii<T: Voxel>(
     g: &Csr,
     positions: &[[f64; 3]],
     edt_radii: &[f64],
+    first: usize,
     mask: ArrayView3<'_, T>,
     field: &Field,
     spacing: [f64; 3],
     shift: f64,
 ) -> Vec<f64> {
-    node_radii(OUTPUT_RADII, g, positions, edt_radii, mask, field, spacing)
+    radii_from(OUTPUT_RADII, first, g, positions, edt_radii, mask, field, spacing)
         .into_iter()
         .map(|r| (r - shift).max(0.0))
         .collect()
@@ -614,9 +616,24 @@ pub fn node_radii<T: Voxel>(
     field: &Field,
     spacing: [f64; 3],
 ) -> Vec<f64> {
+    radii_from(model, 0, g, positions, edt_radii, mask, field, spacing)
+}
+
+/// [`node_radii`] of the nodes `first..` only.
+#[allow(clippy::too_many_arguments)]
+fn radii_from<T: Voxel>(
+    model: RadiusModel,
+    first: usize,
+    g: &Csr,
+    positions: &[[f64; 3]],
+    edt_radii: &[f64],
+    mask: ArrayView3<'_, T>,
+    field: &Field,
+    spacing: [f64; 3],
+) -> Vec<f64> {
     let c = base_cell(spacing);
     let cap = 0.5 * dot(spacing, spacing).sqrt();
-    (0..g.nodes())
+    (first..g.nodes())
         .into_par_iter()
         .map(|i| {
             let (p, r0) = (positions[i], edt_radii[i]);

@@ -56,6 +56,11 @@ class Skeletonizer:
     anchor_ends : bool
         Also count nodes of degree 1 (free vessel ends) as skeletal, so the flow does not
         pull ends inward along their vessels (not in the paper; ``False`` follows it).
+    sprouts : bool
+        At output, grow back side branches the contraction swallowed into their parent:
+        lobes of the mask that reach further from the graph than their own radius plus 8
+        voxels become branches from the nearest edge, if at least 3.5 parent radii long
+        (not in the paper). Single runs only: ``vesselflow.distributed`` grows none.
     medial : bool
         After refinement, move every node onto the ridge of the distance transform:
         within its cross-section to the nearest local maximum (never across a saddle
@@ -132,6 +137,7 @@ class Skeletonizer:
         medial_weight: Literal["radius", "difference"] = "radius",
         skeletal_angle: float = 10.0,
         anchor_ends: bool = True,
+        sprouts: bool = True,
         medial: bool = True,
         eps_gamma: float = 10.0,
         alpha: float = 0.25,

@@ -95,6 +95,10 @@ fn parameter_help(name: &str) -> Option<&'static str> {
         "anchor_ends" => {
             "Count vessel ends (nodes of degree 1) as on the centreline, so that the flow does not shorten vessels."
         }
+        "sprouts" => {
+            "Grow back side branches the contraction swallowed into their parent (single runs; chunked runs grow \
+             none)."
+        }
         "medial" => {
             "After refinement, move nodes onto the ridge of the distance transform and junctions to where their \
              branches meet (at most 0.6 radii)."
