@@ -20,6 +20,7 @@
 //! | [`inside`] | nodes on background voxels moved to the nearest vessel voxel | — |
 //! | [`medial`] | nodes moved onto the ridge of the distance transform (`medial`) | — |
 //! | [`ends`] | free vessel ends moved out to one radius inside the mask (`anchor_ends`) | — |
+//! | [`sprouts`] | side branches the contraction swallowed grown back from the mask (`sprouts`) | — |
 //! | [`radius`] | node radii: cross-section area scaled by median over RMS chord length (robust to bubbles), or the plain area, or the EDT less a constant | — |
 //! | [`edges_inside`] | edges that cross background subdivided by nodes on the mask | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |

@@ -1,4 +1,4 @@
-//! Sprouts (output stage, with `anchor_ends`; not in the paper).
+//! Sprouts (output stage, with `sprouts`; not in the paper).
 //!
 //! Contraction can swallow a short side branch into its parent: the branch's nodes
 //! collapse onto the parent's centreline and no end is left to follow it
@@ -7,20 +7,23 @@
 //! negatives. This stage finds them in the mask and grows them back.
 //!
 //! Every vessel voxel gets its geodesic distance `D` through the mask (26-neighbour
-//! steps) from the voxels the graph's edges pass through. A voxel inside a vessel the
-//! graph covers lies at most about its vessel's radius from an edge, so `D` exceeds its
-//! distance transform by little; one in a lost branch lies further away than its own
-//! radius by about the branch's length. Voxels with `D - EDT > SPROUT_GAP` cells form
-//! the unreached lobes of the mask (26-connected). From each lobe's farthest voxel (the
-//! branch's cap) the shortest path runs back to the graph; the sprout ends where the
-//! cap's ball is centred (the first voxel back along the path whose transform reaches
-//! its distance from the farthest voxel), and starts on the nearest edge of the graph
-//! (split there). A sprout shorter than [`BUMP_RADII`] radii of its parent (the
-//! transform where it starts on the parent's edge) is a bump of the parent's wall,
-//! such as a noise bubble, not a vessel, and is not grown. Sprouts are grown in rounds
+//! steps, [`Reach`]) from the voxels the graph's edges pass through. A voxel inside a
+//! vessel the graph covers lies at most about its vessel's radius from an edge, so `D`
+//! exceeds its distance transform by little; one in a lost branch lies further away
+//! than its own radius by about the branch's length. Voxels with `D - EDT >
+//! SPROUT_GAP` cells form the unreached lobes of the mask (26-connected). From each
+//! lobe's farthest voxel (the branch's cap) the shortest path runs back to the graph;
+//! the sprout ends where the cap's ball is centred (the first voxel back along the path
+//! whose transform reaches its distance from the farthest voxel), and starts on the
+//! nearest edge of the graph (split there). A sprout shorter than [`BUMP_RADII`] radii
+//! of its parent (the radii of the edge's nodes, interpolated where it starts) is a
+//! bump of the parent's wall, such as a noise bubble, a flat vessel's rim or the
+//! corner of a square end, not a vessel, and is not grown. Sprouts are grown in rounds
 //! (a lost branch with a side branch of its own shows that one only once the first is
-//! grown), at most [`ROUNDS`]. The new nodes are placed on the path every [`NODE_STEP`] cells and then
-//! centred like every other node ([`crate::medial::recentre`]).
+//! grown), at most [`ROUNDS`]; each round adds the new edges to the sources and updates
+//! the distances from them alone. The new nodes are placed on the path every
+//! [`NODE_STEP`] cells and then centred like every other node
+//! ([`crate::medial::recentre`]).
 
 use crate::ends::edge_voxels;
 use crate::error::Result;

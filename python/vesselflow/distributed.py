@@ -246,7 +246,8 @@ def skeletonize(
         As for :func:`vesselflow.load_volume`: the dataset and the input rule.
     **params
         Method parameters, as for :class:`vesselflow.Skeletonizer`; checked before any
-        work is sent.
+        work is sent. ``sprouts`` has no effect: blocks grow no sprouts (their nodes
+        would own no voxel), so the graph is that of a single run with ``sprouts=False``.
 
     Returns
     -------
