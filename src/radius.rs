@@ -598,30 +598,17 @@ pub fn output_radii<T: Voxel>(
     spacing: [f64; 3],
     shift: f64,
 ) -> Vec<f64> {
-    radii_from(OUTPUT_RADII, first, g, positions, edt_radii, mask, field, spacing)
+    node_radii(OUTPUT_RADII, first, g, positions, edt_radii, mask, field, spacing)
         .into_iter()
         .map(|r| (r - shift).max(0.0))
         .collect()
 }
 
-/// The radius of every node of the output graph `g` (positions in physical units),
-/// given each node's largest EDT value `edt_radii` (physical), by `model`; `field` is
-/// the mask's distance transform ([`Field::new`] of `mask` and `spacing`).
-pub fn node_radii<T: Voxel>(
-    model: RadiusModel,
-    g: &Csr,
-    positions: &[[f64; 3]],
-    edt_radii: &[f64],
-    mask: ArrayView3<'_, T>,
-    field: &Field,
-    spacing: [f64; 3],
-) -> Vec<f64> {
-    radii_from(model, 0, g, positions, edt_radii, mask, field, spacing)
-}
-
-/// [`node_radii`] of the nodes `first..` only.
+/// The radius of nodes `first..` of the output graph `g` (positions in physical
+/// units), given each node's largest EDT value `edt_radii` (physical), by `model`;
+/// `field` is the mask's distance transform ([`Field::new`] of `mask` and `spacing`).
 #[allow(clippy::too_many_arguments)]
-fn radii_from<T: Voxel>(
+pub fn node_radii<T: Voxel>(
     model: RadiusModel,
     first: usize,
     g: &Csr,

@@ -324,6 +324,37 @@ mod tests {
         (mask, g, vec![[1.0, 1.0, 0.0], [1.0, 1.0, 10.0], [1.0, 1.0, 29.0]])
     }
 
+    /// Distances are the geodesic ones, step costs rounded to 1/16 cell: on a random
+    /// anisotropic mask, adding a second graph's edges to the sources gives what a search
+    /// from both graphs at once gives, and every reached voxel's distance is its
+    /// predecessor's plus one step (a shortest-path tree).
+    #[test]
+    fn extending_the_sources_equals_searching_from_all_of_them() {
+        let mut rnd = crate::test_rng(3);
+        let mask = Array3::from_shape_fn((9, 10, 12), |_| u8::from(rnd(100) < 60));
+        let spacing = [1.0, 1.5, 2.0];
+        let field = Field::new(mask.view(), spacing).unwrap();
+        let (a, b) = (Csr::from_sorted_edges(2, &[(0, 1)]), Csr::from_sorted_edges(2, &[(0, 1)]));
+        let (pa, pb) = (vec![[0.0, 0.0, 0.0], [8.0, 13.5, 22.0]], vec![[8.0, 0.0, 0.0], [0.0, 13.5, 0.0]]);
+        let both = Csr::from_sorted_edges(4, &[(0, 1), (2, 3)]);
+        let pboth: Vec<[f64; 3]> = pa.iter().chain(&pb).copied().collect();
+        let mut step = Reach::of(&a, &pa, &field, spacing).unwrap();
+        step.extend(&b, &pb);
+        let once = Reach::of(&both, &pboth, &field, spacing).unwrap();
+        assert_eq!(step.dist, once.dist);
+        let reached = (0..field.count()).filter(|&i| once.dist[i] != NONE).count();
+        assert!(reached > field.count() / 2, "{reached} of {}", field.count());
+        for i in 0..field.count() {
+            let (d, f) = (once.dist[i], once.from[i] as usize);
+            if d == NONE || d == 0 {
+                continue;
+            }
+            let (u, v) = (field.voxel(i), field.voxel(f));
+            let o = (0..3).fold(0, |o, k| 3 * o + (u[k] + 1 - v[k]));
+            assert_eq!(d, once.dist[f] + once.steps[o], "voxel {u:?} from {v:?}");
+        }
+    }
+
     #[test]
     fn a_lost_branch_grows_back_and_a_bump_does_not() {
         let (mask, g, p) = t_bar(20);
