@@ -140,6 +140,29 @@ fn is_edge_offset(o: [i64; 3], connectivity: Connectivity) -> bool {
     }
 }
 
+/// True if block voxel `v` lies in `core` (half-open ranges per axis).
+fn in_core(core: [[usize; 2]; 3], v: [usize; 3]) -> bool {
+    (0..3).all(|d| core[d][0] <= v[d] && v[d] < core[d][1])
+}
+
+/// Which of a block's `nodes` output nodes own a voxel of its `core`, by `fate` (the
+/// output node of every foreground voxel, in C order: [`VoxelFate::node`]).
+pub(crate) fn core_owners<T: Voxel>(
+    mask: ArrayView3<'_, T>,
+    core: [[usize; 2]; 3],
+    fate: &[u32],
+    nodes: usize,
+) -> Vec<bool> {
+    let mut owns = vec![false; nodes];
+    let voxels = mask.indexed_iter().filter(|(_, m)| m.is_set()).map(|((i, j, k), _)| [i, j, k]);
+    for (id, v) in voxels.enumerate() {
+        if in_core(core, v) {
+            owns[fate[id] as usize] = true;
+        }
+    }
+    owns
+}
+
 /// Refuse a core that does not fit its block of shape `shape` at `origin` in the volume.
 pub(crate) fn check_core(shape: [usize; 3], origin: [i64; 3], core: [[usize; 2]; 3], volume: [usize; 3]) -> Result<()> {
     for d in 0..3 {
@@ -189,11 +212,11 @@ impl Skeletonizer {
         stop: &Stop,
     ) -> Result<BlockPart> {
         check_core(mask.dim().into(), origin, core, volume)?;
-        let in_core = |v: [usize; 3]| (0..3).all(|d| core[d][0] <= v[d] && v[d] < core[d][1]);
+        let in_core = |v: [usize; 3]| in_core(core, v);
         if !mask.indexed_iter().any(|((i, j, k), m)| m.is_set() && in_core([i, j, k])) {
             return Ok(BlockPart::default());
         }
-        let (skeleton, fate) = self.run_tracked(mask, origin, spacing, stop, &mut |_| true, true)?;
+        let (skeleton, fate) = self.run_tracked(mask, origin, spacing, stop, &mut |_| true, Some(core))?;
         let fate = fate.ok_or_else(|| Error::Internal("a tracked run lost its voxels".into()))?;
         let c = base_cell(spacing);
 

@@ -271,7 +271,7 @@ pub fn route_with_radii<T: Voxel>(
     shift: f64,
 ) -> (Routed, Vec<f64>) {
     let routed = route_inside(g, positions, field, mask, spacing);
-    let radii = routed.inserted_radii(|g, q, r| output_radii(g, q, r, 0, mask, field, spacing, shift));
+    let radii = routed.inserted_radii(|g, q, r| output_radii(g, q, r, &|_| true, mask, field, spacing, shift));
     (routed, radii)
 }
 

@@ -1,7 +1,7 @@
 //! The Skeletonizer: EDT → grid graph → contraction (Algorithm 1) → refinement
 //! (§III-G) → output, with per-stage timings and a progress observer.
 
-use crate::blocks::{follow, VoxelFate};
+use crate::blocks::{core_owners, follow, VoxelFate};
 use crate::cancel::{self, Stop};
 use crate::coarse;
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
@@ -260,11 +260,14 @@ impl Skeletonizer {
         stop: &Stop,
         observer: &mut dyn FnMut(&Progress) -> bool,
     ) -> Result<Skeleton> {
-        self.run_tracked(mask, offset, spacing, stop, observer, false).map(|(skeleton, _)| skeleton)
+        self.run_tracked(mask, offset, spacing, stop, observer, None).map(|(skeleton, _)| skeleton)
     }
 
-    /// [`Skeletonizer::run_block_with_stop`] that, with `track`, also follows every
-    /// foreground voxel to its output node ([`VoxelFate`], for chunked runs).
+    /// [`Skeletonizer::run_block_with_stop`] that, with a block's `core` (half-open
+    /// ranges per axis), also follows every foreground voxel to its output node
+    /// ([`VoxelFate`], for chunked runs) and measures the radii only of the nodes the
+    /// merge reads: those that own a core voxel, and the ends (whose moves bound one
+    /// another's). It grows no sprouts: their nodes would own no voxel.
     pub(crate) fn run_tracked<T: Voxel>(
         &self,
         mask: ArrayView3<'_, T>,
@@ -272,7 +275,7 @@ impl Skeletonizer {
         spacing: [f64; 3],
         stop: &Stop,
         observer: &mut dyn FnMut(&Progress) -> bool,
-        track: bool,
+        core: Option<[[usize; 2]; 3]>,
     ) -> Result<(Skeleton, Option<VoxelFate>)> {
         check_spacing(spacing)?;
         check_shape(mask)?;
@@ -320,7 +323,7 @@ impl Skeletonizer {
         info.foreground_voxels = n;
         info.mask_components = grid.components;
         report(observer, "grid", 0, n, f64::NAN)?;
-        let mut fate = track.then(|| VoxelFate::new(&grid));
+        let mut fate = core.is_some().then(|| VoxelFate::new(&grid));
         // Off, the start graph is the grid graph (no stage in the timings).
         let (mut g, map) = if p.coarse_cell > 0.0 {
             clock.time("coarse", || pool.install(|| coarse::coarsen(grid, spacing, p.coarse_cell)))
@@ -429,13 +432,19 @@ impl Skeletonizer {
             // the radii and the ends (one thread of its own; it is a serial search).
             // A block of a chunked run grows none: its sprouts' nodes would own no voxel,
             // and the merge builds the graph from the voxels' nodes.
-            let sprouts = p.sprouts && !track;
+            let sprouts = p.sprouts && core.is_none();
+            let owners = match (core, &fate) {
+                (Some(core), Some(fate)) => Some(core_owners(mask, core, &fate.node, g.positions.len())),
+                _ => None,
+            };
+            let measure = |i: usize| owners.as_ref().is_none_or(|o| o[i] || g.graph.neighbours(i).len() == 1);
             let (reach, (radii, positions)) = pool.install(|| {
                 rayon::join(
                     || sprouts.then(|| Reach::of(&g.graph, &g.positions, &field, spacing)).transpose(),
                     || {
                         // One radius rule for every output node, the routed-in ones too.
-                        let radii = output_radii(&g.graph, &g.positions, &g.radii, 0, mask, &field, spacing, shift);
+                        let radii =
+                            output_radii(&g.graph, &g.positions, &g.radii, &measure, mask, &field, spacing, shift);
                         if !p.anchor_ends {
                             return (radii, g.positions.clone());
                         }
@@ -459,9 +468,10 @@ impl Skeletonizer {
                     let edt: Vec<f64> =
                         g.radii.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();
                     let mut radii = radii;
-                    radii.extend(
-                        pool.install(|| output_radii(&graph, &positions, &edt, n, mask, &field, spacing, shift)),
-                    );
+                    let new = |i: usize| i >= n;
+                    let all =
+                        pool.install(|| output_radii(&graph, &positions, &edt, &new, mask, &field, spacing, shift));
+                    radii.extend_from_slice(&all[n..]);
                     (graph, positions, radii)
                 }
                 None => (std::mem::take(&mut g.graph), positions, radii),

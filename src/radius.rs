@@ -584,33 +584,34 @@ fn ball_radius<T: Voxel>(mask: &ArrayView3<'_, T>, spacing: [f64; 3], p: [f64; 3
     (volume * 0.75 / std::f64::consts::PI).cbrt()
 }
 
-/// The radii of output nodes `first..`: [`OUTPUT_RADII`] less `shift` (the radius
-/// correction in physical units), floored at 0. The one rule for every output node, in
-/// a single run and in a chunked run's routing phase.
+/// The radii of the output nodes `measure` selects: [`OUTPUT_RADII`] less `shift` (the
+/// radius correction in physical units), floored at 0 (0 for the others). The one rule
+/// for every output node, in a single run and in a chunked run's routing phase.
 #[allow(clippy::too_many_arguments)]
 pub fn output_radii<T: Voxel>(
     g: &Csr,
     positions: &[[f64; 3]],
     edt_radii: &[f64],
-    first: usize,
+    measure: &(dyn Fn(usize) -> bool + Sync),
     mask: ArrayView3<'_, T>,
     field: &Field,
     spacing: [f64; 3],
     shift: f64,
 ) -> Vec<f64> {
-    node_radii(OUTPUT_RADII, first, g, positions, edt_radii, mask, field, spacing)
+    node_radii(OUTPUT_RADII, measure, g, positions, edt_radii, mask, field, spacing)
         .into_iter()
         .map(|r| (r - shift).max(0.0))
         .collect()
 }
 
-/// The radius of nodes `first..` of the output graph `g` (positions in physical
-/// units), given each node's largest EDT value `edt_radii` (physical), by `model`;
-/// `field` is the mask's distance transform ([`Field::new`] of `mask` and `spacing`).
+/// The radius of every node of the output graph `g` that `measure` selects (0 for the
+/// others; positions in physical units), given each node's largest EDT value
+/// `edt_radii` (physical), by `model`; `field` is the mask's distance transform
+/// ([`Field::new`] of `mask` and `spacing`).
 #[allow(clippy::too_many_arguments)]
 pub fn node_radii<T: Voxel>(
     model: RadiusModel,
-    first: usize,
+    measure: &(dyn Fn(usize) -> bool + Sync),
     g: &Csr,
     positions: &[[f64; 3]],
     edt_radii: &[f64],
@@ -620,9 +621,12 @@ pub fn node_radii<T: Voxel>(
 ) -> Vec<f64> {
     let c = base_cell(spacing);
     let cap = 0.5 * dot(spacing, spacing).sqrt();
-    (first..g.nodes())
+    (0..g.nodes())
         .into_par_iter()
         .map(|i| {
+            if !measure(i) {
+                return 0.0;
+            }
             let (p, r0) = (positions[i], edt_radii[i]);
             let quantile = match model {
                 RadiusModel::Edt { offset } => return (r0 - offset * c).max(0.0),

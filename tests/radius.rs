@@ -162,7 +162,9 @@ fn measure(next: &mut impl FnMut() -> f64, r_vox: f64, spacing: [f64; 3], raster
     let field = Field::new(mask.view(), spacing).unwrap();
     let got = MODELS
         .iter()
-        .map(|&(_, model)| node_radii(model, 0, &g, &positions, &[r_edt; 3], mask.view(), &field, spacing)[1] / c)
+        .map(|&(_, model)| {
+            node_radii(model, &|_| true, &g, &positions, &[r_edt; 3], mask.view(), &field, spacing)[1] / c
+        })
         .collect();
     Case { r: r_vox, got }
 }
@@ -300,7 +302,7 @@ fn a_junction_takes_its_inscribed_radius() {
     let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (0, 3)]);
     let field = Field::new(mask.view(), [1.0; 3]).unwrap();
     for (name, model) in MODELS.iter().skip(2) {
-        let got = node_radii(*model, 0, &g, &positions, &[6.0, r, r, r], mask.view(), &field, [1.0; 3])[0];
+        let got = node_radii(*model, &|_| true, &g, &positions, &[6.0, r, r, r], mask.view(), &field, [1.0; 3])[0];
         assert!((got - r).abs() <= 0.5, "{name}: junction radius {got}");
     }
 }
@@ -323,7 +325,7 @@ fn a_junction_near_the_array_face_takes_the_distance_to_the_face() {
         let edt = [edt; 4];
         let field = Field::new(mask.view(), spacing).unwrap();
         for (name, model) in MODELS.iter().skip(2) {
-            let got = node_radii(*model, 0, &g, &positions, &edt, mask.view(), &field, spacing)[0];
+            let got = node_radii(*model, &|_| true, &g, &positions, &edt, mask.view(), &field, spacing)[0];
             assert!((got - want).abs() < 1e-9, "{name} {spacing:?}: junction radius {got}, want {want}");
         }
     }
