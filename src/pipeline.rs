@@ -10,7 +10,7 @@ use crate::edges_inside::{route_with_radii, Routed};
 use crate::ends::{extend_ends, follow_ends};
 use crate::error::{Error, Result};
 use crate::graph::{RunInfo, Skeleton, StageTime};
-use crate::grid::{self, filled};
+use crate::grid::{self, filled, Csr};
 use crate::inside::{keep_inside, loop_of_the_mask, LOOP_RADIUS_SHIFT};
 use crate::laplacian;
 use crate::medial;
@@ -456,24 +456,10 @@ impl Skeletonizer {
                     },
                 )
             });
-            // Lost side branches grown back (`sprouts`); the new nodes take the one
-            // radius rule, from the transform where they sit.
             let (graph, positions, radii) = match reach? {
-                Some(reach) => {
-                    let n = positions.len();
-                    let (graph, mut positions) = pool.install(|| sprout(reach, &g.graph, &positions, &radii))?;
-                    // Like every node, the new ones sit on a vessel voxel.
-                    let inside = keep_inside(&positions[n..], mask, spacing);
-                    positions[n..].copy_from_slice(&inside);
-                    let edt: Vec<f64> =
-                        g.radii.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();
-                    let mut radii = radii;
-                    let new = |i: usize| i >= n;
-                    let all =
-                        pool.install(|| output_radii(&graph, &positions, &edt, &new, mask, &field, spacing, shift));
-                    radii.extend_from_slice(&all[n..]);
-                    (graph, positions, radii)
-                }
+                Some(reach) => pool.install(|| {
+                    with_sprouts(reach, &g.graph, &g.radii, positions, radii, mask, &field, spacing, shift)
+                })?,
                 None => (std::mem::take(&mut g.graph), positions, radii),
             };
             let (routed, inserted) =
@@ -498,6 +484,31 @@ impl Skeletonizer {
         info.stage_seconds = clock.0;
         Ok((Skeleton { info, ..out }, fate))
     }
+}
+
+/// The output graph (`g`, `positions`, `radii`) with its lost side branches grown back
+/// ([`sprout`]): the new nodes on vessel voxels, their radii by the one rule from the
+/// transform where they sit (`edt`: the old nodes' largest transform values).
+#[allow(clippy::too_many_arguments)]
+fn with_sprouts<T: Voxel>(
+    reach: Reach<'_>,
+    g: &Csr,
+    edt: &[f64],
+    positions: Vec<[f64; 3]>,
+    mut radii: Vec<f64>,
+    mask: ArrayView3<'_, T>,
+    field: &medial::Field,
+    spacing: [f64; 3],
+    shift: f64,
+) -> Result<(Csr, Vec<[f64; 3]>, Vec<f64>)> {
+    let n = positions.len();
+    let (graph, mut positions) = sprout(reach, g, &positions, &radii)?;
+    let inside = keep_inside(&positions[n..], mask, spacing);
+    positions[n..].copy_from_slice(&inside);
+    let edt: Vec<f64> = edt.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();
+    let all = output_radii(&graph, &positions, &edt, &|i| i >= n, mask, field, spacing, shift);
+    radii.extend_from_slice(&all[n..]);
+    Ok((graph, positions, radii))
 }
 
 /// Refuse, before any work, a mask whose shape the stages cannot index: a voxel count
