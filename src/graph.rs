@@ -38,6 +38,8 @@ pub struct RunInfo {
     pub cg_iterations: Vec<usize>,
     /// Solves that hit `cg_max_iterations` before reaching `cg_tol`.
     pub cg_unconverged: usize,
+    /// Side branches grown back at output (`Params::sprouts`).
+    pub sprouts: usize,
     /// Wall time per stage, in pipeline order.
     pub stage_seconds: Vec<StageTime>,
 }

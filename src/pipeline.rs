@@ -456,11 +456,11 @@ impl Skeletonizer {
                     },
                 )
             });
-            let (graph, positions, radii) = match reach? {
+            let (graph, positions, radii, sprouts) = match reach? {
                 Some(reach) => pool.install(|| {
                     with_sprouts(reach, &g.graph, &g.radii, positions, radii, mask, &field, spacing, shift)
                 })?,
-                None => (std::mem::take(&mut g.graph), positions, radii),
+                None => (std::mem::take(&mut g.graph), positions, radii, 0),
             };
             let (routed, inserted) =
                 pool.install(|| route_with_radii(&graph, &positions, &field, mask, spacing, shift));
@@ -475,20 +475,25 @@ impl Skeletonizer {
                     .map(|q| std::array::from_fn(|d| q[d] + offset[d] as f64 * spacing[d]))
                     .collect(),
                 spacing,
-                info: RunInfo::default(),
+                info: RunInfo { sprouts, ..RunInfo::default() },
             })
         })?;
         stop.check()?;
         check_skeleton(&out)?;
         report(observer, "output", 0, out.positions.len(), f64::NAN)?;
+        info.sprouts = out.info.sprouts;
         info.stage_seconds = clock.0;
         Ok((Skeleton { info, ..out }, fate))
     }
 }
 
+/// An output graph, its positions and radii, and the number of sprouts it grew.
+type Sprouted = (Csr, Vec<[f64; 3]>, Vec<f64>, usize);
+
 /// The output graph (`g`, `positions`, `radii`) with its lost side branches grown back
 /// ([`sprout`]): the new nodes on vessel voxels, their radii by the one rule from the
-/// transform where they sit (`edt`: the old nodes' largest transform values).
+/// transform where they sit (`edt`: the old nodes' largest transform values); and the
+/// number of sprouts.
 #[allow(clippy::too_many_arguments)]
 fn with_sprouts<T: Voxel>(
     reach: Reach<'_>,
@@ -500,15 +505,15 @@ fn with_sprouts<T: Voxel>(
     field: &medial::Field,
     spacing: [f64; 3],
     shift: f64,
-) -> Result<(Csr, Vec<[f64; 3]>, Vec<f64>)> {
+) -> Result<Sprouted> {
     let n = positions.len();
-    let (graph, mut positions) = sprout(reach, g, &positions, &radii)?;
+    let (graph, mut positions, count) = sprout(reach, g, &positions, &radii)?;
     let inside = keep_inside(&positions[n..], mask, spacing);
     positions[n..].copy_from_slice(&inside);
     let edt: Vec<f64> = edt.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();
     let all = output_radii(&graph, &positions, &edt, &|i| i >= n, mask, field, spacing, shift);
     radii.extend_from_slice(&all[n..]);
-    Ok((graph, positions, radii))
+    Ok((graph, positions, radii, count))
 }
 
 /// Refuse, before any work, a mask whose shape the stages cannot index: a voxel count

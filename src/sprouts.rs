@@ -54,24 +54,32 @@ const NONE: u32 = u32::MAX;
 /// holds the distances from an earlier state of the graph ([`Reach::of`]), so that it
 /// can be computed beside other work; `g`'s own edges are added to its sources first.
 /// `radii` are the radii of `g`'s nodes (physical units), which set how long a sprout
-/// must be ([`BUMP_RADII`]); the new nodes' are the transform's where they sit.
-pub fn sprout(mut reach: Reach<'_>, g: &Csr, positions: &[[f64; 3]], radii: &[f64]) -> Result<(Csr, Vec<[f64; 3]>)> {
+/// must be ([`BUMP_RADII`]); the new nodes' are the transform's where they sit. Also
+/// returns the number of sprouts grown.
+pub fn sprout(
+    mut reach: Reach<'_>,
+    g: &Csr,
+    positions: &[[f64; 3]],
+    radii: &[f64],
+) -> Result<(Csr, Vec<[f64; 3]>, usize)> {
     let mut graph = g.clone();
     let mut pos = positions.to_vec();
+    let mut count = 0;
     for _ in 0..ROUNDS {
         // Each round's sources add to the last round's: distances only shrink.
         reach.extend(&graph, &pos);
         let first = pos.len();
-        let (next, grown) = sprout_round(&graph, &pos, radii, &reach)?;
-        if grown.len() == first {
+        let (next, grown, sprouts) = sprout_round(&graph, &pos, radii, &reach)?;
+        if sprouts == 0 {
             break;
         }
+        count += sprouts;
         pos = grown;
         let centred = centre_new(&next, &pos, first, reach.field, reach.spacing);
         pos[first..].copy_from_slice(&centred);
         graph = next;
     }
-    Ok((graph, pos))
+    Ok((graph, pos, count))
 }
 
 /// The nodes `first..` of `g` centred like every other node ([`recentre`]), on the
@@ -191,8 +199,14 @@ impl<'a> Reach<'a> {
     }
 }
 
-/// One round: every lobe's sprout whose path shares no voxel with an earlier one's.
-fn sprout_round(g: &Csr, positions: &[[f64; 3]], radii: &[f64], reach: &Reach<'_>) -> Result<(Csr, Vec<[f64; 3]>)> {
+/// One round: every lobe's sprout whose path shares no voxel with an earlier one's;
+/// the graph, the positions and the number of sprouts.
+fn sprout_round(
+    g: &Csr,
+    positions: &[[f64; 3]],
+    radii: &[f64],
+    reach: &Reach<'_>,
+) -> Result<(Csr, Vec<[f64; 3]>, usize)> {
     let field = reach.field;
     let c = base_cell(reach.spacing);
     let edt = |i: usize| field.dist_at(i) * c;
@@ -228,6 +242,7 @@ fn sprout_round(g: &Csr, positions: &[[f64; 3]], radii: &[f64], reach: &Reach<'_
     let mut edges = g.edge_list();
     let mut pos = positions.to_vec();
     let mut claimed: FxHashSet<usize> = FxHashSet::default();
+    let mut count = 0;
     for tip in tips {
         // Back from the tip: the path to the graph, tip first (distances fall strictly
         // along it, so it ends).
@@ -242,7 +257,9 @@ fn sprout_round(g: &Csr, positions: &[[f64; 3]], radii: &[f64], reach: &Reach<'_
         }
         // The sprout ends at the centre of the cap's ball.
         let far = d(tip);
-        let Some(end) = path.iter().position(|&i| edt(i) >= far - d(i)) else { continue };
+        let Some(end) = path.iter().position(|&i| edt(i) >= far - d(i)).filter(|&e| e + 1 < path.len()) else {
+            continue;
+        };
         // The edge nearest the root, split at the root's projection onto it.
         let root = *path.last().unwrap();
         let Some((k, t)) = nearest_edge(&edges, &pos, reach.centre(root)) else { continue };
@@ -282,10 +299,11 @@ fn sprout_round(g: &Csr, positions: &[[f64; 3]], radii: &[f64], reach: &Reach<'_
             }
         }
         claimed.extend(path.iter().copied());
+        count += 1;
     }
     edges.sort_unstable();
     edges.dedup();
-    Ok((Csr::from_sorted_edges(pos.len(), &edges), pos))
+    Ok((Csr::from_sorted_edges(pos.len(), &edges), pos, count))
 }
 
 /// The edge (index into `edges`) nearest `p` and the parameter of `p`'s projection on it.
@@ -359,18 +377,18 @@ mod tests {
     fn a_lost_branch_grows_back_and_a_bump_does_not() {
         let (mask, g, p) = t_bar(20);
         let field = Field::new(mask.view(), [1.0; 3]).unwrap();
-        let (out, q) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
+        let (out, q, n) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
         assert_eq!(&q[..3], &p[..]);
         // The bar's edge is split at the branch (node 3), and the sprout reaches the
         // branch's far end (1, 21, 15), one radius (one cell) short of its cap at most.
         assert_eq!(q[3], [1.0, 1.0, 15.0]);
         assert!(q.iter().any(|x| dist(x, &[1.0, 21.0, 15.0]) <= 1.0), "{q:?}");
         assert_eq!(out.edges(), q.len() - 1);
-        assert_eq!(out.neighbours(3).len(), 3);
+        assert_eq!((out.neighbours(3).len(), n), (3, 1));
         // A side branch shorter than the gap leaves the graph as it was.
         let (mask, g, p) = t_bar(6);
         let field = Field::new(mask.view(), [1.0; 3]).unwrap();
-        let (out, q) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
-        assert_eq!((out, q), (g, p));
+        let (out, q, n) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
+        assert_eq!((out, q, n), (g, p, 0));
     }
 }

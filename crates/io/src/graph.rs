@@ -124,6 +124,7 @@ pub fn run_info_json(info: &RunInfo) -> Value {
         "area_reference": info.area_reference,
         "cg_iterations": info.cg_iterations,
         "cg_unconverged": info.cg_unconverged,
+        "sprouts": info.sprouts,
         "stage_seconds": stage_seconds,
     })
 }

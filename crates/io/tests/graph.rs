@@ -40,6 +40,7 @@ fn skeleton() -> Skeleton {
             area_reference: 1234.0,
             cg_iterations: vec![31, 20, 12],
             cg_unconverged: 0,
+            sprouts: 3,
             stage_seconds: vec![
                 StageTime { stage: "edt", seconds: 0.01 },
                 StageTime { stage: "grid", seconds: 0.02 },
@@ -75,6 +76,7 @@ fn check_info(info: &Value, expected: &RunInfo) {
     assert_eq!(info["area_reference"], 1234.0);
     assert_eq!(info["cg_iterations"], serde_json::json!([31, 20, 12]));
     assert_eq!(info["cg_unconverged"], 0);
+    assert_eq!(info["sprouts"], 3);
     let stages: Vec<(&String, f64)> =
         info["stage_seconds"].as_object().unwrap().iter().map(|(k, v)| (k, v.as_f64().unwrap())).collect();
     let want: Vec<(String, f64)> = expected.stage_seconds.iter().map(|t| (t.stage.to_string(), t.seconds)).collect();
@@ -82,7 +84,7 @@ fn check_info(info: &Value, expected: &RunInfo) {
     for ((k, v), (wk, wv)) in stages.iter().zip(&want) {
         assert_eq!((k.as_str(), *v), (wk.as_str(), *wv), "stage order and values");
     }
-    assert_eq!(info.as_object().unwrap().len(), 13, "every RunInfo field, nothing else");
+    assert_eq!(info.as_object().unwrap().len(), 14, "every RunInfo field, nothing else");
 }
 
 fn check_params(params: &Value) {
