@@ -41,6 +41,7 @@
 //! **Routing phase** ([`crate::blocks_route`]): after the merge, the merged edges that
 //! cross background are routed inside the mask, each by the one block that owns it.
 
+use crate::blocks_sprouts::{attach_sprouts, SproutRecord};
 use crate::cancel::Stop;
 use crate::cycles::{refine_step, Cycle};
 use crate::decimate::{cell_of, decimate_mapped, NodeGraph};
@@ -113,6 +114,8 @@ pub struct BlockPart {
     /// Core voxels on a face of the core shared with another block: global C-order
     /// voxel index and their `cells` index, sorted by voxel.
     pub faces: Vec<(u64, u32)>,
+    /// The sprouts whose lobe's farthest voxel lies in the core, in the order grown.
+    pub sprouts: Vec<SproutRecord>,
 }
 
 /// The 13 offsets of a 26-neighbourhood that come later in C order.
@@ -216,7 +219,7 @@ impl Skeletonizer {
         if !mask.indexed_iter().any(|((i, j, k), m)| m.is_set() && in_core([i, j, k])) {
             return Ok(BlockPart::default());
         }
-        let (skeleton, fate) = self.run_tracked(mask, origin, spacing, stop, &mut |_| true, Some(core))?;
+        let (skeleton, fate, grown) = self.run_tracked(mask, origin, spacing, stop, &mut |_| true, Some(core))?;
         let fate = fate.ok_or_else(|| Error::Internal("a tracked run lost its voxels".into()))?;
         let c = base_cell(spacing);
 
@@ -295,7 +298,20 @@ impl Skeletonizer {
             }
         }
         faces.sort_unstable();
-        Ok(BlockPart { cells, edges, bridges: sorted_pairs(bridges), faces })
+        let node = |i: u32| (skeleton.positions[i as usize], skeleton.radii[i as usize]);
+        let sprouts = grown
+            .iter()
+            .filter(|s| in_core(s.tip))
+            .map(|s| SproutRecord {
+                round: s.round as u32,
+                split: s.split,
+                start: node(s.start).0,
+                start_radius: node(s.start).1,
+                positions: s.nodes.clone().map(|i| node(i).0).collect(),
+                radii: s.nodes.clone().map(|i| node(i).1).collect(),
+            })
+            .collect();
+        Ok(BlockPart { cells, edges, bridges: sorted_pairs(bridges), faces, sprouts })
     }
 
     /// The largest vessel radius of `mask` (physical units): the largest distance from a
@@ -560,6 +576,16 @@ impl Skeletonizer {
                 ..RunInfo::default()
             },
         };
+        // The blocks' sprouts, by round, then block, then the order grown.
+        let mut sprouts: Vec<(u32, usize, usize, &SproutRecord)> = parts
+            .iter()
+            .enumerate()
+            .flat_map(|(b, part)| part.sprouts.iter().enumerate().map(move |(k, s)| (s.round, b, k, s)))
+            .collect();
+        sprouts.sort_by_key(|&(round, b, k, _)| (round, b, k));
+        let sprouts: Vec<&SproutRecord> = sprouts.into_iter().map(|(.., s)| s).collect();
+        let (mut out, attached) = attach_sprouts(out, &sprouts);
+        out.info.sprouts = attached;
         check_skeleton(&out)?;
         Ok(out)
     }

@@ -27,6 +27,7 @@
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
 //! | [`blocks_route`] | chunked runs: the routing phase, edges kept inside the mask per block | — |
+//! | [`blocks_sprouts`] | chunked runs: the blocks' sprouts attached to the merged graph | — |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
 //! | [`memory`] | the run's peak memory estimated from the mask, the `max_memory` guard | — |
 //! | [`shapes`] | analytic test volumes and the built-in demo volume | — |
@@ -46,6 +47,7 @@
 
 pub mod blocks;
 pub mod blocks_route;
+pub mod blocks_sprouts;
 pub mod cancel;
 pub mod coarse;
 pub mod cycles;

@@ -21,7 +21,7 @@ use crate::precondition::{slab_axes, slab_order, NormalMatrix};
 use crate::radius::output_radii;
 use crate::resample;
 use crate::solver::{self, NormalOperator, SolveStats};
-use crate::sprouts::{sprout, Reach};
+use crate::sprouts::{sprout, Grown, Reach};
 use crate::vec3::base_cell;
 use crate::volume::{check_spacing, edt_squared_rows, foreground_rows, Voxel};
 use ndarray::ArrayView3;
@@ -260,14 +260,15 @@ impl Skeletonizer {
         stop: &Stop,
         observer: &mut dyn FnMut(&Progress) -> bool,
     ) -> Result<Skeleton> {
-        self.run_tracked(mask, offset, spacing, stop, observer, None).map(|(skeleton, _)| skeleton)
+        self.run_tracked(mask, offset, spacing, stop, observer, None).map(|(skeleton, ..)| skeleton)
     }
 
     /// [`Skeletonizer::run_block_with_stop`] that, with a block's `core` (half-open
     /// ranges per axis), also follows every foreground voxel to its output node
     /// ([`VoxelFate`], for chunked runs) and measures the radii only of the nodes the
     /// merge reads: those that own a core voxel, and the ends (whose moves bound one
-    /// another's). It grows no sprouts: their nodes would own no voxel.
+    /// another's). Also returns the sprouts grown (their nodes own no voxel: the merge
+    /// attaches them).
     pub(crate) fn run_tracked<T: Voxel>(
         &self,
         mask: ArrayView3<'_, T>,
@@ -276,7 +277,7 @@ impl Skeletonizer {
         stop: &Stop,
         observer: &mut dyn FnMut(&Progress) -> bool,
         core: Option<[[usize; 2]; 3]>,
-    ) -> Result<(Skeleton, Option<VoxelFate>)> {
+    ) -> Result<(Skeleton, Option<VoxelFate>, Vec<Grown>)> {
         check_spacing(spacing)?;
         check_shape(mask)?;
         let c = base_cell(spacing);
@@ -421,7 +422,7 @@ impl Skeletonizer {
                 clock.time("medial", || pool.install(|| medial::recentre(&g.graph, &g.positions, &g.radii, &field)));
         }
 
-        let out = clock.time("output", || -> Result<Skeleton> {
+        let (out, grown) = clock.time("output", || -> Result<(Skeleton, Vec<Grown>)> {
             g.positions = pool.install(|| keep_inside(&g.positions, mask, spacing));
             // The nodes the split added take the transform where they now sit.
             if p.coarse_cell > 0.0 {
@@ -430,9 +431,7 @@ impl Skeletonizer {
             let shift = p.radius_correction * c;
             // The graph's geodesic reach through the mask, for the sprouts, runs beside
             // the radii and the ends (one thread of its own; it is a serial search).
-            // A block of a chunked run grows none: its sprouts' nodes would own no voxel,
-            // and the merge builds the graph from the voxels' nodes.
-            let sprouts = p.sprouts && core.is_none();
+            let sprouts = p.sprouts;
             let owners = match (core, &fate) {
                 (Some(core), Some(fate)) => Some(core_owners(mask, core, &fate.node, g.positions.len())),
                 _ => None,
@@ -460,14 +459,14 @@ impl Skeletonizer {
                 Some(reach) => pool.install(|| {
                     with_sprouts(reach, &g.graph, &g.radii, positions, radii, mask, &field, spacing, shift)
                 })?,
-                None => (std::mem::take(&mut g.graph), positions, radii, 0),
+                None => (std::mem::take(&mut g.graph), positions, radii, vec![]),
             };
             let (routed, inserted) =
                 pool.install(|| route_with_radii(&graph, &positions, &field, mask, spacing, shift));
             let mut radii = radii;
             radii.extend(inserted);
             let Routed { graph, positions, .. } = routed;
-            Ok(Skeleton {
+            let out = Skeleton {
                 radii,
                 edges: graph.edge_list().into_iter().map(|(a, b)| [a as usize, b as usize]).collect(),
                 positions: positions
@@ -475,25 +474,26 @@ impl Skeletonizer {
                     .map(|q| std::array::from_fn(|d| q[d] + offset[d] as f64 * spacing[d]))
                     .collect(),
                 spacing,
-                info: RunInfo { sprouts, ..RunInfo::default() },
-            })
+                info: RunInfo::default(),
+            };
+            Ok((out, sprouts))
         })?;
         stop.check()?;
         check_skeleton(&out)?;
         report(observer, "output", 0, out.positions.len(), f64::NAN)?;
-        info.sprouts = out.info.sprouts;
+        info.sprouts = grown.len();
         info.stage_seconds = clock.0;
-        Ok((Skeleton { info, ..out }, fate))
+        Ok((Skeleton { info, ..out }, fate, grown))
     }
 }
 
-/// An output graph, its positions and radii, and the number of sprouts it grew.
-type Sprouted = (Csr, Vec<[f64; 3]>, Vec<f64>, usize);
+/// An output graph, its positions and radii, and the sprouts it grew.
+type Sprouted = (Csr, Vec<[f64; 3]>, Vec<f64>, Vec<Grown>);
 
 /// The output graph (`g`, `positions`, `radii`) with its lost side branches grown back
 /// ([`sprout`]): the new nodes on vessel voxels, their radii by the one rule from the
 /// transform where they sit (`edt`: the old nodes' largest transform values); and the
-/// number of sprouts.
+/// sprouts.
 #[allow(clippy::too_many_arguments)]
 fn with_sprouts<T: Voxel>(
     reach: Reach<'_>,
@@ -507,13 +507,13 @@ fn with_sprouts<T: Voxel>(
     shift: f64,
 ) -> Result<Sprouted> {
     let n = positions.len();
-    let (graph, mut positions, count) = sprout(reach, g, &positions, &radii)?;
+    let (graph, mut positions, grown) = sprout(reach, g, &positions, &radii)?;
     let inside = keep_inside(&positions[n..], mask, spacing);
     positions[n..].copy_from_slice(&inside);
     let edt: Vec<f64> = edt.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();
     let all = output_radii(&graph, &positions, &edt, &|i| i >= n, mask, field, spacing, shift);
     radii.extend_from_slice(&all[n..]);
-    Ok((graph, positions, radii, count))
+    Ok((graph, positions, radii, grown))
 }
 
 /// Refuse, before any work, a mask whose shape the stages cannot index: a voxel count

@@ -30,7 +30,7 @@ use crate::error::Result;
 use crate::grid::Csr;
 use crate::medial::{recentre, Field};
 use crate::memory::try_filled;
-use crate::vec3::{base_cell, dot, norm, sub};
+use crate::vec3::{base_cell, norm, projection, sub};
 use rustc_hash::FxHashSet;
 
 /// How far (base cells) a voxel's geodesic distance from the graph may exceed its own
@@ -55,31 +55,43 @@ const NONE: u32 = u32::MAX;
 /// can be computed beside other work; `g`'s own edges are added to its sources first.
 /// `radii` are the radii of `g`'s nodes (physical units), which set how long a sprout
 /// must be ([`BUMP_RADII`]); the new nodes' are the transform's where they sit. Also
-/// returns the number of sprouts grown.
+/// returns the sprouts grown, in the order they were grown.
 pub fn sprout(
     mut reach: Reach<'_>,
     g: &Csr,
     positions: &[[f64; 3]],
     radii: &[f64],
-) -> Result<(Csr, Vec<[f64; 3]>, usize)> {
+) -> Result<(Csr, Vec<[f64; 3]>, Vec<Grown>)> {
     let mut graph = g.clone();
     let mut pos = positions.to_vec();
-    let mut count = 0;
-    for _ in 0..ROUNDS {
+    let mut all = vec![];
+    for round in 0..ROUNDS {
         // Each round's sources add to the last round's: distances only shrink.
         reach.extend(&graph, &pos);
         let first = pos.len();
-        let (next, grown, sprouts) = sprout_round(&graph, &pos, radii, &reach)?;
-        if sprouts == 0 {
+        let (next, grown, sprouts) = sprout_round(&graph, &pos, radii, &reach, round)?;
+        if sprouts.is_empty() {
             break;
         }
-        count += sprouts;
+        all.extend(sprouts);
         pos = grown;
         let centred = centre_new(&next, &pos, first, reach.field, reach.spacing);
         pos[first..].copy_from_slice(&centred);
         graph = next;
     }
-    Ok((graph, pos, count))
+    Ok((graph, pos, all))
+}
+
+/// One sprout as grown: its round (from 0), its lobe's farthest voxel (the voxel's
+/// index in the mask array), the node it starts from (a node of the graph it grew
+/// from, or one the split added when `split`), and its new nodes, start to end.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grown {
+    pub round: usize,
+    pub tip: [usize; 3],
+    pub start: u32,
+    pub split: bool,
+    pub nodes: std::ops::Range<u32>,
 }
 
 /// The nodes `first..` of `g` centred like every other node ([`recentre`]), on the
@@ -200,13 +212,14 @@ impl<'a> Reach<'a> {
 }
 
 /// One round: every lobe's sprout whose path shares no voxel with an earlier one's;
-/// the graph, the positions and the number of sprouts.
+/// the graph, the positions and the sprouts.
 fn sprout_round(
     g: &Csr,
     positions: &[[f64; 3]],
     radii: &[f64],
     reach: &Reach<'_>,
-) -> Result<(Csr, Vec<[f64; 3]>, usize)> {
+    round: usize,
+) -> Result<(Csr, Vec<[f64; 3]>, Vec<Grown>)> {
     let field = reach.field;
     let c = base_cell(reach.spacing);
     let edt = |i: usize| field.dist_at(i) * c;
@@ -242,7 +255,7 @@ fn sprout_round(
     let mut edges = g.edge_list();
     let mut pos = positions.to_vec();
     let mut claimed: FxHashSet<usize> = FxHashSet::default();
-    let mut count = 0;
+    let mut sprouts = vec![];
     for tip in tips {
         // Back from the tip: the path to the graph, tip first (distances fall strictly
         // along it, so it ends).
@@ -273,18 +286,20 @@ fn sprout_round(
         if dist(&split, &reach.centre(path[end])) < BUMP_RADII * parent {
             continue;
         }
-        let start = if t * dist(&pos[a as usize], &pos[b as usize]) < c {
-            a
-        } else if (1.0 - t) * dist(&pos[a as usize], &pos[b as usize]) < c {
-            b
+        let length = dist(&pos[a as usize], &pos[b as usize]);
+        let (split_here, start) = if t * length < c {
+            (false, a)
+        } else if (1.0 - t) * length < c {
+            (false, b)
         } else {
             let j = pos.len() as u32;
             pos.push(split);
             edges[k] = (a, j);
             edges.push((b.min(j), b.max(j)));
-            j
+            (true, j)
         };
         // Nodes every NODE_STEP cells from the root to the end.
+        let new = pos.len() as u32;
         let mut prev = start;
         let mut run = 0.0;
         let along: Vec<usize> = path[end..].iter().rev().copied().collect();
@@ -299,11 +314,12 @@ fn sprout_round(
             }
         }
         claimed.extend(path.iter().copied());
-        count += 1;
+        let nodes = new..pos.len() as u32;
+        sprouts.push(Grown { round, tip: field.voxel(tip), start, split: split_here, nodes });
     }
     edges.sort_unstable();
     edges.dedup();
-    Ok((Csr::from_sorted_edges(pos.len(), &edges), pos, count))
+    Ok((Csr::from_sorted_edges(pos.len(), &edges), pos, sprouts))
 }
 
 /// The edge (index into `edges`) nearest `p` and the parameter of `p`'s projection on it.
@@ -312,12 +328,8 @@ fn nearest_edge(edges: &[(u32, u32)], pos: &[[f64; 3]], p: [f64; 3]) -> Option<(
         .iter()
         .enumerate()
         .map(|(k, &(a, b))| {
-            let (pa, pb) = (pos[a as usize], pos[b as usize]);
-            let ab = sub(pb, pa);
-            let l2 = dot(ab, ab);
-            let t = if l2 > 0.0 { (dot(sub(p, pa), ab) / l2).clamp(0.0, 1.0) } else { 0.0 };
-            let q: [f64; 3] = std::array::from_fn(|d| pa[d] + t * ab[d]);
-            (dist(&p, &q), k, t)
+            let (t, d) = projection(p, pos[a as usize], pos[b as usize]);
+            (d, k, t)
         })
         .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)))
         .map(|(_, k, t)| (k, t))
@@ -377,18 +389,22 @@ mod tests {
     fn a_lost_branch_grows_back_and_a_bump_does_not() {
         let (mask, g, p) = t_bar(20);
         let field = Field::new(mask.view(), [1.0; 3]).unwrap();
-        let (out, q, n) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
+        let (out, q, grown) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
         assert_eq!(&q[..3], &p[..]);
         // The bar's edge is split at the branch (node 3), and the sprout reaches the
         // branch's far end (1, 21, 15), one radius (one cell) short of its cap at most.
         assert_eq!(q[3], [1.0, 1.0, 15.0]);
         assert!(q.iter().any(|x| dist(x, &[1.0, 21.0, 15.0]) <= 1.0), "{q:?}");
         assert_eq!(out.edges(), q.len() - 1);
-        assert_eq!((out.neighbours(3).len(), n), (3, 1));
+        assert_eq!(out.neighbours(3).len(), 3);
+        // One sprout, from the split node 3, its nodes the rest, its tip the branch's cap.
+        let [one] = &grown[..] else { panic!("{grown:?}") };
+        assert_eq!((one.round, one.start, one.split, one.nodes.clone()), (0, 3, true, 4..q.len() as u32));
+        assert_eq!(one.tip, [1, 21, 15]);
         // A side branch shorter than the gap leaves the graph as it was.
         let (mask, g, p) = t_bar(6);
         let field = Field::new(mask.view(), [1.0; 3]).unwrap();
-        let (out, q, n) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
-        assert_eq!((out, q, n), (g, p, 0));
+        let (out, q, grown) = sprout(Reach::of(&g, &p, &field, [1.0; 3]).unwrap(), &g, &p, &[1.0; 3]).unwrap();
+        assert_eq!((out, q, grown), (g, p, vec![]));
     }
 }

@@ -31,3 +31,13 @@ pub(crate) fn unit(d: [f64; 3]) -> Option<[f64; 3]> {
     let n = norm(d);
     (n > 0.0).then(|| [d[0] / n, d[1] / n, d[2] / n])
 }
+
+/// The projection of `p` onto the segment `a`–`b`: its parameter `t` in `[0, 1]` (0 for
+/// a segment of length 0) and its distance from `p`.
+pub(crate) fn projection(p: [f64; 3], a: [f64; 3], b: [f64; 3]) -> (f64, f64) {
+    let ab = sub(b, a);
+    let l2 = dot(ab, ab);
+    let t = if l2 > 0.0 { (dot(sub(p, a), ab) / l2).clamp(0.0, 1.0) } else { 0.0 };
+    let q: [f64; 3] = std::array::from_fn(|d| a[d] + t * ab[d]);
+    (t, norm(sub(p, q)))
+}

@@ -186,25 +186,31 @@ fn distinct_nodes_of_a_block_in_one_cell_stay_apart() {
         edges: vec![[0, 1], [1, 2]],
         bridges: vec![],
         faces: vec![],
+        ..Default::default()
     };
     let g = sk.merge_blocks(&[one], [1, 1, 3], [1.0; 3]).unwrap();
     assert_eq!(z(&g), [0.8, 1.2, 2.0]);
     assert_eq!(g.edges, [[0, 1], [1, 2]]);
     // Two blocks (cores z < 2 and z >= 2): the first holds two nodes in cell 1, the
     // second one (z = 1.375, from its voxel 2, next to the first's voxel 1 of node 1).
-    let a =
-        BlockPart { cells: vec![rec(0, 0.8), rec(1, 1.25)], edges: vec![[0, 1]], bridges: vec![], faces: vec![(1, 1)] };
+    let a = BlockPart {
+        cells: vec![rec(0, 0.8), rec(1, 1.25)],
+        edges: vec![[0, 1]],
+        faces: vec![(1, 1)],
+        ..Default::default()
+    };
     let b = BlockPart {
         cells: vec![rec(0, 1.375), rec(1, 3.0)],
         edges: vec![[0, 1]],
         bridges: vec![],
         faces: vec![(2, 0)],
+        ..Default::default()
     };
     let g = sk.merge_blocks(&[a, b.clone()], [1, 1, 4], [1.0; 3]).unwrap();
     assert_eq!(z(&g), [0.8, 1.3125, 3.0]);
     assert_eq!(g.edges, [[0, 1], [1, 2]]);
     // One node of the first block in cell 1: the cell is one node, fed by both blocks.
-    let a = BlockPart { cells: vec![rec(0, 1.25)], edges: vec![], bridges: vec![], faces: vec![(1, 0)] };
+    let a = BlockPart { cells: vec![rec(0, 1.25)], faces: vec![(1, 0)], ..Default::default() };
     let g = sk.merge_blocks(&[a, b], [1, 1, 4], [1.0; 3]).unwrap();
     assert_eq!(z(&g), [1.3125, 3.0]);
     assert_eq!(g.edges, [[0, 1]]);

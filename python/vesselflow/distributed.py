@@ -132,9 +132,10 @@ def _block_task(
     return "computed", out
 
 
-PART_FORMAT = 2
+PART_FORMAT = 3
 """Version of the block parts kept in a ``workdir`` (2: one record per node of a block,
-with its position); a workdir of another version is refused like one of another set-up."""
+with its position; 3: with the block's sprouts); a workdir of another version is refused
+like one of another set-up."""
 
 ROUTE_READS = 4
 """Reads a routing task may make: the first with the block phase's halo, each next one
@@ -246,8 +247,9 @@ def skeletonize(
         As for :func:`vesselflow.load_volume`: the dataset and the input rule.
     **params
         Method parameters, as for :class:`vesselflow.Skeletonizer`; checked before any
-        work is sent. ``sprouts`` has no effect: blocks grow no sprouts (their nodes
-        would own no voxel), so the graph is that of a single run with ``sprouts=False``.
+        work is sent. With ``sprouts`` (default), every block grows the sprouts of its
+        read and reports those whose lobe ends in its core; the merge attaches them
+        (``info["sprouts"]`` counts them).
 
     Returns
     -------

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -16,6 +19,21 @@ def make_slow_tube() -> np.ndarray:
     """A thick tube with about 4 s of work on 2 cores, so that a signal sent at the
     first progress report lands mid-run even on a loaded machine."""
     return make_tube((400, 41, 41), 14.0)
+
+
+def noisy_forests(seeds: Iterable[int]) -> Iterator[tuple[np.ndarray, Any]]:
+    """Noisy (D2) 96³ forests of the second synthetic family and their truth graphs, one
+    per seed (use seeds outside the fidelity benchmark's tuning and held-out sets)."""
+    from vesselflow import synth
+
+    for seed in seeds:
+        mask, truth = synth.vascular_forest((96, 96, 96), seed=seed)
+        yield synth.add_bubble_noise(mask, "D2", seed=seed), truth
+
+
+def mean_rate(rows: list[dict[str, float]], key: str) -> float:
+    """The mean of ``key`` over NetMets result rows."""
+    return float(np.mean([r[key] for r in rows]))
 
 
 @pytest.fixture

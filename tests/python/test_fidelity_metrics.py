@@ -10,6 +10,7 @@ import pytest
 from scipy import ndimage
 
 import vesselflow
+from conftest import mean_rate, noisy_forests
 from vesselflow import VesselGraph, metrics, synth
 
 
@@ -136,9 +137,7 @@ def test_sprouts_recover_lost_branches_on_noisy_forests():
     # and held-out sets: the sprouts must cover true centreline the contraction lost
     # (lower GFNR at sigma = 2) without adding false centreline, components or cycles.
     off, on = [], []
-    for seed in (2000, 2001, 2002):
-        mask, truth = synth.vascular_forest((96, 96, 96), seed=seed)
-        mask = synth.add_bubble_noise(mask, "D2", seed=seed)
+    for mask, truth in noisy_forests((2000, 2001, 2002)):
         a = vesselflow.skeletonize(mask, sprouts=False)
         b = vesselflow.skeletonize(mask)
         assert b.n_nodes >= a.n_nodes
@@ -148,9 +147,5 @@ def test_sprouts_recover_lost_branches_on_noisy_forests():
             assert tb[key] == ta[key]
         off.append(metrics.netmets(truth, a, sigma=2.0))
         on.append(metrics.netmets(truth, b, sigma=2.0))
-
-    def mean(rows: list[dict[str, float]], key: str) -> float:
-        return float(np.mean([r[key] for r in rows]))
-
-    assert mean(on, "gfnr") < mean(off, "gfnr") - 0.005
-    assert mean(on, "gfpr") < mean(off, "gfpr") + 0.005
+    assert mean_rate(on, "gfnr") < mean_rate(off, "gfnr") - 0.005
+    assert mean_rate(on, "gfpr") < mean_rate(off, "gfpr") + 0.005

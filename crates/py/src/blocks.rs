@@ -9,6 +9,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use vesselflow::blocks::{BlockPart, NodeRecord};
 use vesselflow::blocks_route::{owner_voxel, splice_routes as splice, RoutedPart};
+use vesselflow::blocks_sprouts::SproutRecord;
 use vesselflow::graph::{RunInfo, Skeleton};
 use vesselflow::Stop;
 
@@ -237,6 +238,19 @@ fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
     }
     d.set_item("face_voxel", PyArray1::from_iter(py, part.faces.iter().map(|f| f.0)))?;
     d.set_item("face_cell", PyArray1::from_iter(py, part.faces.iter().map(|f| f.1)))?;
+    // Sprouts: one row each, their nodes concatenated (`sprout_length` each).
+    let k = part.sprouts.len();
+    d.set_item("sprout_round", PyArray1::from_iter(py, part.sprouts.iter().map(|s| s.round)))?;
+    d.set_item("sprout_split", PyArray1::from_iter(py, part.sprouts.iter().map(|s| s.split)))?;
+    let start = rows(part.sprouts.iter().flat_map(|s| s.start).collect(), k).map_err(shape_err)?;
+    d.set_item("sprout_start", start.into_pyarray(py))?;
+    d.set_item("sprout_start_radius", PyArray1::from_iter(py, part.sprouts.iter().map(|s| s.start_radius)))?;
+    d.set_item("sprout_length", PyArray1::from_iter(py, part.sprouts.iter().map(|s| s.positions.len() as u64)))?;
+    let m = part.sprouts.iter().map(|s| s.positions.len()).sum();
+    let nodes =
+        rows(part.sprouts.iter().flat_map(|s| s.positions.as_flattened().to_vec()).collect(), m).map_err(shape_err)?;
+    d.set_item("sprout_position", nodes.into_pyarray(py))?;
+    d.set_item("sprout_radius", PyArray1::from_iter(py, part.sprouts.iter().flat_map(|s| s.radii.iter().copied())))?;
     Ok(d)
 }
 
@@ -286,5 +300,42 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
         return Err(PyValueError::new_err("block part face arrays disagree in length"));
     }
     let faces = voxel.as_array().iter().copied().zip(face_cell.as_array().iter().copied()).collect();
-    Ok(BlockPart { cells, edges: pairs("edges")?, bridges: pairs("bridges")?, faces })
+    Ok(BlockPart { cells, edges: pairs("edges")?, bridges: pairs("bridges")?, faces, sprouts: sprouts_from_py(&get)? })
+}
+
+fn sprouts_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> PyResult<Vec<SproutRecord>> {
+    let round: PyReadonlyArray1<u32> = get("sprout_round")?.extract()?;
+    let split: PyReadonlyArray1<bool> = get("sprout_split")?.extract()?;
+    let start: PyReadonlyArray2<f64> = get("sprout_start")?.extract()?;
+    let start_radius: PyReadonlyArray1<f64> = get("sprout_start_radius")?.extract()?;
+    let length: PyReadonlyArray1<u64> = get("sprout_length")?.extract()?;
+    let position: PyReadonlyArray2<f64> = get("sprout_position")?.extract()?;
+    let radius: PyReadonlyArray1<f64> = get("sprout_radius")?.extract()?;
+    let (round, split, start_radius, length, radius) =
+        (round.as_array(), split.as_array(), start_radius.as_array(), length.as_array(), radius.as_array());
+    let (start, position) = (points(&start, "sprout_start")?, points(&position, "sprout_position")?);
+    let k = round.len();
+    let total: u64 = length.iter().sum();
+    if split.len() != k || start.len() != k || start_radius.len() != k || length.len() != k {
+        return Err(PyValueError::new_err("block part sprout arrays disagree in length"));
+    }
+    if total != position.len() as u64 || total != radius.len() as u64 {
+        return Err(PyValueError::new_err("block part sprout nodes disagree with `sprout_length`"));
+    }
+    let mut at = 0usize;
+    Ok((0..k)
+        .map(|i| {
+            let n = length[i] as usize;
+            let s = SproutRecord {
+                round: round[i],
+                split: split[i],
+                start: start[i],
+                start_radius: start_radius[i],
+                positions: position[at..at + n].to_vec(),
+                radii: radius.slice(ndarray::s![at..at + n]).to_vec(),
+            };
+            at += n;
+            s
+        })
+        .collect())
 }
