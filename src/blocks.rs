@@ -577,6 +577,15 @@ impl Skeletonizer {
             },
         };
         // The blocks' sprouts, by round, then block, then the order grown.
+        check_skeleton(&out)?;
+        for (b, part) in parts.iter().enumerate() {
+            if let Some(k) = part.sprouts.iter().position(|s| !s.is_valid()) {
+                return Err(Error::InvalidMask(format!(
+                    "block {b}'s sprout {k} has no nodes, a radius count unlike its node count, or a \
+                     non-finite or negative value"
+                )));
+            }
+        }
         let mut sprouts: Vec<(u32, usize, usize, &SproutRecord)> = parts
             .iter()
             .enumerate()

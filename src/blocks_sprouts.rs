@@ -34,6 +34,18 @@ pub struct SproutRecord {
     pub radii: Vec<f64>,
 }
 
+impl SproutRecord {
+    /// Whether the record can be attached: at least one node, a radius per node, every
+    /// position finite and every radius finite and `>= 0`.
+    pub fn is_valid(&self) -> bool {
+        let radius = |r: &f64| r.is_finite() && *r >= 0.0;
+        !self.positions.is_empty()
+            && self.positions.len() == self.radii.len()
+            && self.positions.iter().chain([&self.start]).all(|p| p.iter().all(|x| x.is_finite()))
+            && self.radii.iter().chain([&self.start_radius]).all(radius)
+    }
+}
+
 /// Edges (indices into `edges`) by the cells of side `side` their bounding boxes touch,
 /// kept only for the cells a search may read (those around the sprouts' starts), so
 /// that the grid grows with the sprouts, not with the graph.
@@ -70,11 +82,24 @@ impl EdgeGrid {
         self.boxed(p.map(|x| x - self.side), p.map(|x| x + self.side))
     }
 
-    /// Files edge `k` (`a`–`b`) under every kept cell its bounding box touches.
+    /// Files edge `k` (`a`–`b`) under every kept cell its bounding box touches: the
+    /// box's cells when they are fewer than the kept ones, else the kept cells inside
+    /// the box (so a long edge costs no more than the kept cells).
     fn insert(&mut self, k: usize, a: [f64; 3], b: [f64; 3]) {
-        for key in self.boxed(a, b) {
-            if let Some(v) = self.cells.get_mut(&key) {
-                v.push(k as u32);
+        let lo = self.cell(std::array::from_fn(|d| a[d].min(b[d])));
+        let hi = self.cell(std::array::from_fn(|d| a[d].max(b[d])));
+        let span = (0..3).map(|d| (hi[d] as i128 - lo[d] as i128 + 1) as f64).product::<f64>();
+        if span <= self.cells.len() as f64 {
+            for key in self.boxed(a, b) {
+                if let Some(v) = self.cells.get_mut(&key) {
+                    v.push(k as u32);
+                }
+            }
+        } else {
+            for (key, v) in self.cells.iter_mut() {
+                if (0..3).all(|d| lo[d] <= key[d] && key[d] <= hi[d]) {
+                    v.push(k as u32);
+                }
             }
         }
     }
@@ -97,7 +122,8 @@ impl EdgeGrid {
 }
 
 /// The merged graph `g` with `sprouts` attached (module doc), given in the order they
-/// are attached; and how many were.
+/// are attached; and how many were. `g`'s positions must be finite and every sprout
+/// valid ([`SproutRecord::is_valid`]).
 pub fn attach_sprouts(mut g: Skeleton, sprouts: &[&SproutRecord]) -> (Skeleton, usize) {
     if sprouts.is_empty() {
         return (g, 0);
@@ -109,9 +135,6 @@ pub fn attach_sprouts(mut g: Skeleton, sprouts: &[&SproutRecord]) -> (Skeleton, 
     }
     let mut attached = 0;
     for s in sprouts {
-        if s.positions.is_empty() || s.positions.len() != s.radii.len() {
-            continue;
-        }
         let Some(k) = grid.nearest(s.start, &g.edges, &g.positions) else { continue };
         let [a, b] = g.edges[k];
         let start = if s.split {
@@ -176,5 +199,33 @@ mod tests {
         assert_eq!(g.radii[3..], [1.5, 1.0, 0.8, 1.0, 0.8]);
         // The split edge 1-2 is now 1-3-2; the joined sprout starts on node 2.
         assert_eq!(g.edges, vec![[0, 1], [1, 3], [2, 3], [2, 6], [3, 4], [4, 5], [6, 7]]);
+    }
+
+    #[test]
+    fn an_edge_longer_than_the_kept_cells_is_still_found() {
+        // One edge across 250 000 grid cells: filed under the kept cells inside its box.
+        let mut g = bar();
+        g.positions[2] = [0.0, 0.0, 1e6];
+        let s = SproutRecord {
+            split: true,
+            start: [1.0, 0.0, 5e5],
+            start_radius: 1.0,
+            positions: vec![[4.0, 0.0, 5e5]],
+            radii: vec![1.0],
+            ..SproutRecord::default()
+        };
+        let (g, n) = attach_sprouts(g, &[&s]);
+        assert_eq!(n, 1);
+        assert_eq!(g.edges, vec![[0, 1], [1, 3], [2, 3], [3, 4]]);
+    }
+
+    #[test]
+    fn a_record_with_a_bad_value_is_not_valid() {
+        let good = SproutRecord { positions: vec![[1.0; 3]], radii: vec![1.0], ..SproutRecord::default() };
+        assert!(good.is_valid());
+        assert!(!SproutRecord { radii: vec![], ..good.clone() }.is_valid());
+        assert!(!SproutRecord { start: [f64::NAN, 0.0, 0.0], ..good.clone() }.is_valid());
+        assert!(!SproutRecord { radii: vec![-1.0], ..good.clone() }.is_valid());
+        assert!(!SproutRecord { positions: vec![], radii: vec![], ..good }.is_valid());
     }
 }

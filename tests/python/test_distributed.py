@@ -255,3 +255,31 @@ def test_blocks_grow_the_sprouts_a_single_run_grows(client: Any) -> None:
         on.append(netmets(truth, b, sigma=2.0))
     assert mean_rate(on, "gfnr") < mean_rate(off, "gfnr") - 0.005
     assert mean_rate(on, "gfpr") < mean_rate(off, "gfpr") + 0.005
+
+
+def test_the_merge_refuses_bad_sprout_records() -> None:
+    # A block part from disk may be damaged: the merge names the bad sprout record
+    # instead of attaching it (or panicking).
+    from vesselflow import _core
+
+    mask = _tube((32, 32, 32)).astype(np.uint8)
+    sk = _core.Skeletonizer()
+    part = _core.contract_block(sk, mask, [0, 0, 0], [[0, 32]] * 3, [32, 32, 32], [1.0] * 3)
+    one = {
+        "sprout_round": np.array([0], np.uint32),
+        "sprout_split": np.array([True]),
+        "sprout_start": np.array([[4.0, 4.0, 4.0]]),
+        "sprout_start_radius": np.array([1.0]),
+        "sprout_length": np.array([1], np.uint64),
+        "sprout_position": np.array([[6.0, 4.0, 4.0]]),
+        "sprout_radius": np.array([1.0]),
+    }
+    g = _core.merge_blocks(sk, [part | one], [32, 32, 32], [1.0] * 3)
+    assert g[3]["sprouts"] == 1
+    assert len(g[0]) == len(part["component"]) + 2
+    bad_start = one | {"sprout_start": np.array([[np.nan, 4.0, 4.0]])}
+    with pytest.raises(ValueError, match="sprout 0"):
+        _core.merge_blocks(sk, [part | bad_start], [32, 32, 32], [1.0] * 3)
+    too_long = one | {"sprout_length": np.array([2**64 - 1], np.uint64)}
+    with pytest.raises(ValueError, match="sprout_length"):
+        _core.merge_blocks(sk, [part | too_long], [32, 32, 32], [1.0] * 3)

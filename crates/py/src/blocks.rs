@@ -315,11 +315,11 @@ fn sprouts_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> Py
         (round.as_array(), split.as_array(), start_radius.as_array(), length.as_array(), radius.as_array());
     let (start, position) = (points(&start, "sprout_start")?, points(&position, "sprout_position")?);
     let k = round.len();
-    let total: u64 = length.iter().sum();
+    let total = length.iter().try_fold(0u64, |a, &n| a.checked_add(n));
     if split.len() != k || start.len() != k || start_radius.len() != k || length.len() != k {
         return Err(PyValueError::new_err("block part sprout arrays disagree in length"));
     }
-    if total != position.len() as u64 || total != radius.len() as u64 {
+    if total != Some(position.len() as u64) || total != Some(radius.len() as u64) {
         return Err(PyValueError::new_err("block part sprout nodes disagree with `sprout_length`"));
     }
     let mut at = 0usize;
