@@ -9,7 +9,7 @@
 //! **Block phase** ([`Skeletonizer::contract_block`]): a block is read with a halo
 //! around its *core* (the cores tile the volume, each voxel in exactly one). The whole
 //! method runs on block plus halo (EDT, grid, contraction, refinement, output), every
-//! foreground voxel followed to its output node ([`VoxelFate`]). Only core voxels are
+//! foreground voxel followed to its output node ([`crate::fate::VoxelFate`]). Only core voxels are
 //! reported, and each one decides, alone, the global cell of its node's position
 //! (`round(p / c)`, `c` the base cell): a cell key has exactly one owner per voxel, so
 //! float differences between overlapping blocks can never put a voxel in two cells.
@@ -46,8 +46,9 @@ use crate::cancel::Stop;
 use crate::cycles::{refine_step, Cycle};
 use crate::decimate::{cell_of, decimate_mapped, NodeGraph};
 use crate::error::{Error, Result};
+use crate::fate::in_core;
 use crate::graph::{RunInfo, Skeleton};
-use crate::grid::{Csr, GridGraph};
+use crate::grid::Csr;
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
 use crate::resample::split_long_edges;
@@ -56,34 +57,6 @@ use crate::volume::{edt_squared, Voxel};
 use ndarray::ArrayView3;
 use petgraph::unionfind::UnionFind;
 use std::collections::HashMap;
-
-/// Where every foreground voxel of a run went: its node now (voxels in C order), its
-/// mask component, and the initial grid graph.
-#[derive(Debug, Clone)]
-pub struct VoxelFate {
-    pub node: Vec<u32>,
-    pub component: Vec<u32>,
-    pub grid: Csr,
-}
-
-impl VoxelFate {
-    pub(crate) fn new(grid: &GridGraph) -> VoxelFate {
-        VoxelFate {
-            node: (0..grid.positions.len() as u32).collect(),
-            component: grid.component.clone(),
-            grid: grid.graph.clone(),
-        }
-    }
-}
-
-/// Follow a decimation: `map` gives the new node of every old node.
-pub(crate) fn follow(fate: &mut Option<VoxelFate>, map: &[u32]) {
-    if let Some(f) = fate {
-        for n in &mut f.node {
-            *n = map[*n as usize];
-        }
-    }
-}
 
 /// One output node of a block, as seen from its core voxels.
 #[derive(Debug, Clone, PartialEq)]
@@ -141,29 +114,6 @@ fn is_edge_offset(o: [i64; 3], connectivity: Connectivity) -> bool {
         Connectivity::Eighteen => 2,
         Connectivity::TwentySix => 3,
     }
-}
-
-/// True if block voxel `v` lies in `core` (half-open ranges per axis).
-fn in_core(core: [[usize; 2]; 3], v: [usize; 3]) -> bool {
-    (0..3).all(|d| core[d][0] <= v[d] && v[d] < core[d][1])
-}
-
-/// Which of a block's `nodes` output nodes own a voxel of its `core`, by `fate` (the
-/// output node of every foreground voxel, in C order: [`VoxelFate::node`]).
-pub(crate) fn core_owners<T: Voxel>(
-    mask: ArrayView3<'_, T>,
-    core: [[usize; 2]; 3],
-    fate: &[u32],
-    nodes: usize,
-) -> Vec<bool> {
-    let mut owns = vec![false; nodes];
-    let voxels = mask.indexed_iter().filter(|(_, m)| m.is_set()).map(|((i, j, k), _)| [i, j, k]);
-    for (id, v) in voxels.enumerate() {
-        if in_core(core, v) {
-            owns[fate[id] as usize] = true;
-        }
-    }
-    owns
 }
 
 /// Refuse a core that does not fit its block of shape `shape` at `origin` in the volume.

@@ -26,6 +26,7 @@
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
+//! | [`fate`] | chunked runs: every voxel followed to its output node through the stages | — |
 //! | [`blocks_route`] | chunked runs: the routing phase, edges kept inside the mask per block | — |
 //! | [`blocks_sprouts`] | chunked runs: the blocks' sprouts attached to the merged graph | — |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
@@ -55,6 +56,7 @@ pub mod decimate;
 pub mod edges_inside;
 pub mod ends;
 pub mod error;
+pub mod fate;
 pub mod graph;
 pub mod grid;
 pub mod inside;

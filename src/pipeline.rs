@@ -1,7 +1,6 @@
 //! The Skeletonizer: EDT → grid graph → contraction (Algorithm 1) → refinement
 //! (§III-G) → output, with per-stage timings and a progress observer.
 
-use crate::blocks::{core_owners, follow, VoxelFate};
 use crate::cancel::{self, Stop};
 use crate::coarse;
 use crate::cycles::{refine_step, short_cycle_area, Cycle};
@@ -9,6 +8,7 @@ use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
 use crate::edges_inside::{route_with_radii, Routed};
 use crate::ends::{extend_ends, follow_ends};
 use crate::error::{Error, Result};
+use crate::fate::{core_owners, follow, VoxelFate};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled, Csr};
 use crate::inside::{keep_inside, loop_of_the_mask, LOOP_RADIUS_SHIFT};
