@@ -24,8 +24,9 @@ use vesselflow::cycles::short_cycle_area;
 use vesselflow::decimate::{decimate, NodeGraph};
 use vesselflow::grid;
 use vesselflow::laplacian;
+use vesselflow::laplacian::NormalOperator;
 use vesselflow::pipeline::{contract_step, StageClock};
-use vesselflow::solver::{self, NormalOperator};
+use vesselflow::solver;
 use vesselflow::{volume, Params, Skeletonizer};
 
 /// Edges of the benchmark cubes, voxels.

@@ -1,5 +1,6 @@
 //! l2-norm and medial Laplacians and adaptive anchoring (docs/method.md §2.1–2.3,
-//! paper §III-B eqs. 2–4 and §III-D eq. 9).
+//! paper §III-B eqs. 2–4 and §III-D eq. 9), and the normal-equations operator of eq. 8
+//! they make ([`NormalOperator`]), which the solver and its preconditioner read.
 //!
 //! A Laplacian `L = W - I` has row-normalised off-diagonal weights, one per CSR
 //! entry, computed when read from one stored total per row, and a diagonal which is
@@ -152,6 +153,50 @@ pub fn skeletal(g: &Csr, positions: &[[f64; 3]], params: &Params) -> Vec<bool> {
 /// for the skeleton-like ones.
 pub fn anchors(params: &Params) -> [f64; 2] {
     [params.gamma, params.eps_gamma * params.gamma]
+}
+
+/// The normal-equations operator of eq. 8.
+pub struct NormalOperator<'a> {
+    pub graph: &'a Csr,
+    pub ln: &'a Laplacian<'a>,
+    pub lm: &'a Laplacian<'a>,
+    /// `alpha²`, `beta²`.
+    pub a2: f64,
+    pub b2: f64,
+    /// Which nodes are skeleton-like.
+    pub skeletal: &'a [bool],
+    /// `Wg²` of the other nodes and of the skeleton-like ones (two values, not one per
+    /// node: 8 bytes a node less while `M` is assembled, the contraction's peak).
+    pub anchor2: [f64; 2],
+}
+
+impl<'a> NormalOperator<'a> {
+    /// The operator of one contraction iteration: `alpha`, `beta` from `params`, and
+    /// anchoring `gamma` (`eps_gamma * gamma` for skeleton-like nodes).
+    pub fn new(
+        graph: &'a Csr,
+        ln: &'a Laplacian<'a>,
+        lm: &'a Laplacian<'a>,
+        skeletal: &'a [bool],
+        params: &Params,
+    ) -> Self {
+        let anchor2 = anchors(params).map(|w| w * w);
+        NormalOperator {
+            graph,
+            ln,
+            lm,
+            a2: params.alpha * params.alpha,
+            b2: params.beta * params.beta,
+            skeletal,
+            anchor2,
+        }
+    }
+
+    /// `Wg_j²`.
+    #[inline]
+    pub fn anchor2(&self, j: usize) -> f64 {
+        self.anchor2[usize::from(self.skeletal[j])]
+    }
 }
 
 #[cfg(test)]

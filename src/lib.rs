@@ -11,7 +11,7 @@
 //! | [`volume`] | mask views, spacing, anisotropic exact EDT | §III-A |
 //! | [`grid`] | grid graph (CSR) from the mask, thin-vessel reconnection, components | §III-A |
 //! | [`coarse`] | the coarse start graph: voxels grouped into cells as wide as the vessel (`coarse_cell`) | — |
-//! | [`laplacian`] | l2-norm and medial weights, adaptive anchoring | §III-B, §III-D, eqs. 2–4, 9 |
+//! | [`laplacian`] | l2-norm and medial weights, adaptive anchoring, the normal-equations operator | §III-B, §III-D, eqs. 2–4, 8, 9 |
 //! | [`solver`] | normal equations of eq. 8 by preconditioned conjugate gradients | §III-B, eq. 8 |
 //! | [`precondition`] | the assembled normal matrix and its block Gauss–Seidel preconditioner | eq. 8 |
 //! | [`decimate`] | cell-hash clustering with max-radius transfer | §III-E, §III-F |

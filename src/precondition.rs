@@ -22,7 +22,7 @@
 //! iterations to 39 and the whole run by ~15 %.
 
 use crate::grid::{filled, Csr, PerThread, ROW_BLOCK};
-use crate::solver::NormalOperator;
+use crate::laplacian::NormalOperator;
 use rayon::prelude::*;
 use std::ops::Range;
 

@@ -27,58 +27,12 @@
 //! - every reduction is summed over fixed chunks (or the fixed Gauss–Seidel blocks) in
 //!   a fixed order, so the result does not depend on the thread count.
 
-use crate::grid::Csr;
-use crate::laplacian::Laplacian;
-use crate::params::Params;
+use crate::laplacian::NormalOperator;
 use crate::precondition::{sum_parts, Krylov, NormalMatrix, F3, V3};
 use rayon::prelude::*;
 
 /// Entries per parallel chunk of the vector reductions.
 const CHUNK: usize = 8192;
-
-/// The normal-equations operator of eq. 8.
-pub struct NormalOperator<'a> {
-    pub graph: &'a Csr,
-    pub ln: &'a Laplacian<'a>,
-    pub lm: &'a Laplacian<'a>,
-    /// `alpha²`, `beta²`.
-    pub a2: f64,
-    pub b2: f64,
-    /// Which nodes are skeleton-like.
-    pub skeletal: &'a [bool],
-    /// `Wg²` of the other nodes and of the skeleton-like ones (two values, not one per
-    /// node: 8 bytes a node less while `M` is assembled, the contraction's peak).
-    pub anchor2: [f64; 2],
-}
-
-impl<'a> NormalOperator<'a> {
-    /// The operator of one contraction iteration: `alpha`, `beta` from `params`, and
-    /// anchoring `gamma` (`eps_gamma * gamma` for skeleton-like nodes).
-    pub fn new(
-        graph: &'a Csr,
-        ln: &'a Laplacian<'a>,
-        lm: &'a Laplacian<'a>,
-        skeletal: &'a [bool],
-        params: &Params,
-    ) -> Self {
-        let anchor2 = crate::laplacian::anchors(params).map(|w| w * w);
-        NormalOperator {
-            graph,
-            ln,
-            lm,
-            a2: params.alpha * params.alpha,
-            b2: params.beta * params.beta,
-            skeletal,
-            anchor2,
-        }
-    }
-
-    /// `Wg_j²`.
-    #[inline]
-    pub fn anchor2(&self, j: usize) -> f64 {
-        self.anchor2[usize::from(self.skeletal[j])]
-    }
-}
 
 /// Per-coordinate `sum_i w_i y_i[c]²`, reduced over fixed chunks.
 fn weighted_norms(w: &[f32], y: &[F3]) -> V3 {
@@ -206,8 +160,9 @@ pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations:
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::laplacian::{l2_norm, medial};
-    use crate::params::MedialWeight;
+    use crate::grid::Csr;
+    use crate::laplacian::{l2_norm, medial, Laplacian};
+    use crate::params::{MedialWeight, Params};
 
     /// Dense `M = a² LnᵀLn + b² LmᵀLm + diag(w²)`.
     fn dense_normal(g: &Csr, ln: &Laplacian<'_>, lm: &Laplacian<'_>, a: f64, b: f64, w: &[f64]) -> Vec<Vec<f64>> {
@@ -629,6 +584,8 @@ mod tests {
 mod reference {
     use super::tests::dot;
     use super::*;
+    use crate::grid::Csr;
+    use crate::laplacian::Laplacian;
 
     /// `(L x)_i` for one node.
     fn apply_row(g: &Csr, l: &Laplacian<'_>, x: &[V3], i: usize) -> V3 {
