@@ -536,13 +536,9 @@ impl Skeletonizer {
                 )));
             }
         }
-        let mut sprouts: Vec<(u32, usize, usize, &SproutRecord)> = parts
-            .iter()
-            .enumerate()
-            .flat_map(|(b, part)| part.sprouts.iter().enumerate().map(move |(k, s)| (s.round, b, k, s)))
-            .collect();
-        sprouts.sort_by_key(|&(round, b, k, _)| (round, b, k));
-        let sprouts: Vec<&SproutRecord> = sprouts.into_iter().map(|(.., s)| s).collect();
+        // Collected in block order, then the order grown; a stable sort keeps it per round.
+        let mut sprouts: Vec<&SproutRecord> = parts.iter().flat_map(|part| &part.sprouts).collect();
+        sprouts.sort_by_key(|s| s.round);
         let (mut out, attached) = attach_sprouts(out, &sprouts);
         out.info.sprouts = attached;
         check_skeleton(&out)?;

@@ -70,10 +70,14 @@ impl EdgeGrid {
         p.map(|x| (x / self.side).floor() as i64)
     }
 
+    /// The lowest and highest cell of the box from `a` to `b` (any two corners).
+    fn bounds(&self, a: [f64; 3], b: [f64; 3]) -> ([i64; 3], [i64; 3]) {
+        (self.cell(std::array::from_fn(|d| a[d].min(b[d]))), self.cell(std::array::from_fn(|d| a[d].max(b[d]))))
+    }
+
     /// The cells of the box from `a` to `b` (any two corners).
     fn boxed(&self, a: [f64; 3], b: [f64; 3]) -> impl Iterator<Item = [i64; 3]> {
-        let lo = self.cell(std::array::from_fn(|d| a[d].min(b[d])));
-        let hi = self.cell(std::array::from_fn(|d| a[d].max(b[d])));
+        let (lo, hi) = self.bounds(a, b);
         (lo[0]..=hi[0]).flat_map(move |i| (lo[1]..=hi[1]).flat_map(move |j| (lo[2]..=hi[2]).map(move |l| [i, j, l])))
     }
 
@@ -86,8 +90,7 @@ impl EdgeGrid {
     /// box's cells when they are fewer than the kept ones, else the kept cells inside
     /// the box (so a long edge costs no more than the kept cells).
     fn insert(&mut self, k: usize, a: [f64; 3], b: [f64; 3]) {
-        let lo = self.cell(std::array::from_fn(|d| a[d].min(b[d])));
-        let hi = self.cell(std::array::from_fn(|d| a[d].max(b[d])));
+        let (lo, hi) = self.bounds(a, b);
         let span = (0..3).map(|d| (hi[d] as i128 - lo[d] as i128 + 1) as f64).product::<f64>();
         if span <= self.cells.len() as f64 {
             for key in self.boxed(a, b) {

@@ -114,8 +114,8 @@ pub struct Params {
     pub anchor_ends: bool,
     /// At output, grow back the side branches the contraction swallowed into their
     /// parent: lobes of the mask the graph does not reach become new branches from the
-    /// nearest edge ([`crate::sprouts`]). Single runs only: a chunked run's blocks grow
-    /// none (its graph is built from the voxels' nodes, and sprouts own no voxel).
+    /// nearest edge ([`crate::sprouts`]). A chunked run's blocks grow them too, and the
+    /// merge attaches them ([`crate::blocks_sprouts`]).
     pub sprouts: bool,
     /// Move every node, after refinement, onto the ridge of the distance transform:
     /// within its cross-section to the nearest local maximum, and every junction to

@@ -60,7 +60,8 @@ class Skeletonizer:
         At output, grow back side branches the contraction swallowed into their parent:
         lobes of the mask that reach further from the graph than their own radius plus 8
         voxels become branches from the nearest edge, if at least 3.5 parent radii long
-        (not in the paper). Single runs only: ``vesselflow.distributed`` grows none.
+        (not in the paper). ``vesselflow.distributed`` grows them in every block and
+        attaches them in the merge.
     medial : bool
         After refinement, move every node onto the ridge of the distance transform:
         within its cross-section to the nearest local maximum (never across a saddle

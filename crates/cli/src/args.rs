@@ -96,8 +96,8 @@ fn parameter_help(name: &str) -> Option<&'static str> {
             "Count vessel ends (nodes of degree 1) as on the centreline, so that the flow does not shorten vessels."
         }
         "sprouts" => {
-            "Grow back side branches the contraction swallowed into their parent (single runs; chunked runs grow \
-             none)."
+            "Grow back side branches the contraction swallowed into their parent (chunked runs too: the merge \
+             attaches the blocks' sprouts)."
         }
         "medial" => {
             "After refinement, move nodes onto the ridge of the distance transform and junctions to where their \
