@@ -9,17 +9,17 @@ pub enum Error {
     /// A parameter has the wrong type or a value outside its range.
     #[error("invalid parameter `{name}`: {reason}")]
     InvalidParameter { name: String, reason: String },
-    /// A parameter name that does not exist.
-    #[error("unknown parameter `{0}` (known: {known})", known = crate::params::Params::NAMES.join(", "))]
-    UnknownParameter(String),
-    /// Spacing must be three finite numbers in
-    /// [[`MIN_SPACING`](crate::volume::MIN_SPACING), [`MAX_SPACING`](crate::volume::MAX_SPACING)].
+    /// A parameter name that does not exist; `known` lists the names that do.
+    #[error("unknown parameter `{name}` (known: {})", known.join(", "))]
+    UnknownParameter { name: String, known: &'static [&'static str] },
+    /// Spacing must be three finite numbers in `range`
+    /// ([`crate::volume::invalid_spacing`] gives the supported one).
     #[error(
-        "invalid spacing {0:?}: need three finite numbers in [{min:e}, {max:e}] (physical units per voxel)",
-        min = crate::volume::MIN_SPACING,
-        max = crate::volume::MAX_SPACING
+        "invalid spacing {spacing:?}: need three finite numbers in [{:e}, {:e}] (physical units per voxel)",
+        range[0],
+        range[1]
     )]
-    InvalidSpacing(Vec<f64>),
+    InvalidSpacing { spacing: Vec<f64>, range: [f64; 2] },
     /// The mask cannot be processed as given (shape, size).
     #[error("invalid mask: {0}")]
     InvalidMask(String),
@@ -35,8 +35,52 @@ pub enum Error {
     ThreadPool { threads: usize, reason: String },
     /// The run would need more memory than allowed (`max_memory`), or an allocation of
     /// `needed` bytes failed (`allowed` is then 0). Bytes.
-    #[error("{}", crate::memory::out_of_memory_message(*needed, *allowed))]
+    #[error("{}", out_of_memory_message(*needed, *allowed))]
     OutOfMemory { needed: u64, allowed: u64 },
+}
+
+/// `bytes` in the largest binary unit that keeps it at or above 1 (`1.5 GiB`).
+fn format_bytes(bytes: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut x = bytes as f64;
+    let mut u = 0;
+    while x >= 1024.0 && u + 1 < UNITS.len() {
+        x /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{bytes} B")
+    } else {
+        format!("{x:.1} {}", UNITS[u])
+    }
+}
+
+/// `1.5 GiB (1610612736 bytes)`, or `1000 B` below a KiB.
+fn exact_bytes(bytes: u64) -> String {
+    if bytes < 1024 {
+        format_bytes(bytes)
+    } else {
+        format!("{} ({bytes} bytes)", format_bytes(bytes))
+    }
+}
+
+/// The message of [`Error::OutOfMemory`].
+fn out_of_memory_message(needed: u64, allowed: u64) -> String {
+    if allowed == 0 {
+        format!(
+            "out of memory: an allocation of {} ({needed} bytes) failed; crop the volume to the \
+             vessels, split it into blocks or use a machine with more memory",
+            format_bytes(needed)
+        )
+    } else {
+        format!(
+            "out of memory: this run needs about {} but max_memory allows {}; crop the volume to \
+             the vessels, split it into blocks, or raise max_memory= if \
+             more is free",
+            exact_bytes(needed),
+            exact_bytes(allowed)
+        )
+    }
 }
 
 /// Result alias of the core.

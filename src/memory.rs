@@ -111,74 +111,6 @@ pub fn check(peak: u64, max_memory: u64) -> Result<()> {
     }
 }
 
-/// `bytes` in the largest binary unit that keeps it at or above 1 (`1.5 GiB`).
-pub fn format_bytes(bytes: u64) -> String {
-    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
-    let mut x = bytes as f64;
-    let mut u = 0;
-    while x >= 1024.0 && u + 1 < UNITS.len() {
-        x /= 1024.0;
-        u += 1;
-    }
-    if u == 0 {
-        format!("{bytes} B")
-    } else {
-        format!("{x:.1} {}", UNITS[u])
-    }
-}
-
-/// `1.5 GiB (1610612736 bytes)`, or `1000 B` below a KiB.
-fn exact_bytes(bytes: u64) -> String {
-    if bytes < 1024 {
-        format_bytes(bytes)
-    } else {
-        format!("{} ({bytes} bytes)", format_bytes(bytes))
-    }
-}
-
-/// The message of [`Error::OutOfMemory`].
-pub fn out_of_memory_message(needed: u64, allowed: u64) -> String {
-    if allowed == 0 {
-        format!(
-            "out of memory: an allocation of {} ({needed} bytes) failed; crop the volume to the \
-             vessels, split it into blocks or use a machine with more memory",
-            format_bytes(needed)
-        )
-    } else {
-        format!(
-            "out of memory: this run needs about {} but max_memory allows {}; crop the volume to \
-             the vessels, split it into blocks, or raise max_memory= if \
-             more is free",
-            exact_bytes(needed),
-            exact_bytes(allowed)
-        )
-    }
-}
-
-/// Parse a byte count: an integer number of bytes, or a number with a unit (`"8GB"`,
-/// `"512MiB"`, `"1.5 G"`; `k`/`M`/`G`/`T` alone and with `B` are powers of 1000, with
-/// `iB` powers of 1024; case-insensitive).
-pub fn parse_bytes(text: &str) -> Option<u64> {
-    let t = text.trim();
-    let split = t.find(|ch: char| !(ch.is_ascii_digit() || ch == '.')).unwrap_or(t.len());
-    let (number, unit) = (t[..split].trim(), t[split..].trim().to_ascii_lowercase());
-    let x: f64 = number.parse().ok()?;
-    let scale: f64 = match unit.as_str() {
-        "" | "b" => 1.0,
-        "k" | "kb" => 1e3,
-        "m" | "mb" => 1e6,
-        "g" | "gb" => 1e9,
-        "t" | "tb" => 1e12,
-        "kib" => 1024.0,
-        "mib" => 1024f64.powi(2),
-        "gib" => 1024f64.powi(3),
-        "tib" => 1024f64.powi(4),
-        _ => return None,
-    };
-    let bytes = (x * scale).round();
-    (x.is_finite() && bytes < u64::MAX as f64).then_some(bytes as u64)
-}
-
 /// `n` copies of `value`, or [`Error::OutOfMemory`] if the allocation fails: for the
 /// input-sized arrays, so that a run too large for the machine is refused, not
 /// aborted. Written in parallel, so each page is first touched by a write (see
@@ -202,19 +134,6 @@ pub fn try_with_capacity<T>(n: usize) -> Result<Vec<T>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn byte_counts_parse_with_units() {
-        assert_eq!(parse_bytes("8GB"), Some(8_000_000_000));
-        assert_eq!(parse_bytes("512MiB"), Some(512 << 20));
-        assert_eq!(parse_bytes("1KB"), Some(1000));
-        assert_eq!(parse_bytes(" 1.5 gib "), Some(3 << 29));
-        assert_eq!(parse_bytes("123"), Some(123));
-        assert_eq!(parse_bytes("0"), Some(0));
-        for bad in ["", "GB", "8 parsecs", "-1GB", "1e3", "nan"] {
-            assert_eq!(parse_bytes(bad), None, "{bad}");
-        }
-    }
 
     #[test]
     fn the_guard_names_both_numbers() {

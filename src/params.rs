@@ -341,7 +341,7 @@ impl Params {
                     Value::Int(i) if *i >= 0 => Some(*i as u64),
                     Value::Float(x) if x.is_finite() && *x >= 0.0 && *x < u64::MAX as f64 => Some(x.round() as u64),
                     Value::Str(s) if s.eq_ignore_ascii_case("auto") => None,
-                    Value::Str(s) if crate::memory::parse_bytes(s).is_some() => crate::memory::parse_bytes(s),
+                    Value::Str(s) if parse_bytes(s).is_some() => parse_bytes(s),
                     _ => {
                         return Err(bad(
                             name,
@@ -350,7 +350,7 @@ impl Params {
                     }
                 }
             }
-            _ => return Err(Error::UnknownParameter(name.to_string())),
+            _ => return Err(Error::UnknownParameter { name: name.to_string(), known: &Params::NAMES }),
         }
         if self.alpha == 0.0 && self.beta == 0.0 {
             return Err(bad(name, "alpha and beta cannot both be 0 (no flow)"));
@@ -409,6 +409,30 @@ impl Params {
     }
 }
 
+/// Parse a byte count: an integer number of bytes, or a number with a unit (`"8GB"`,
+/// `"512MiB"`, `"1.5 G"`; `k`/`M`/`G`/`T` alone and with `B` are powers of 1000, with
+/// `iB` powers of 1024; case-insensitive).
+fn parse_bytes(text: &str) -> Option<u64> {
+    let t = text.trim();
+    let split = t.find(|ch: char| !(ch.is_ascii_digit() || ch == '.')).unwrap_or(t.len());
+    let (number, unit) = (t[..split].trim(), t[split..].trim().to_ascii_lowercase());
+    let x: f64 = number.parse().ok()?;
+    let scale: f64 = match unit.as_str() {
+        "" | "b" => 1.0,
+        "k" | "kb" => 1e3,
+        "m" | "mb" => 1e6,
+        "g" | "gb" => 1e9,
+        "t" | "tb" => 1e12,
+        "kib" => 1024.0,
+        "mib" => 1024f64.powi(2),
+        "gib" => 1024f64.powi(3),
+        "tib" => 1024f64.powi(4),
+        _ => return None,
+    };
+    let bytes = (x * scale).round();
+    (x.is_finite() && bytes < u64::MAX as f64).then_some(bytes as u64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -433,7 +457,8 @@ mod tests {
         let e = Params::from_pairs([("connectivity", Value::Int(7))]).unwrap_err();
         assert!(e.to_string().contains("`connectivity`"), "{e}");
         let e = Params::from_pairs([("nope", Value::Int(7))]).unwrap_err();
-        assert!(matches!(e, Error::UnknownParameter(_)));
+        assert!(matches!(e, Error::UnknownParameter { .. }));
+        assert!(e.to_string().contains("`nope`") && e.to_string().contains(&Params::NAMES.join(", ")), "{e}");
         let e = Params::from_pairs([("alpha", Value::Float(f64::NAN))]).unwrap_err();
         assert!(e.to_string().contains("`alpha`"), "{e}");
         let e = Params::from_pairs([("medial_weight", Value::Int(1))]).unwrap_err();
@@ -441,6 +466,19 @@ mod tests {
         for bad in [Value::Int(-1), Value::Str("8 parsecs".into()), Value::Bool(true), Value::Float(-1.0)] {
             let e = Params::from_pairs([("max_memory", bad)]).unwrap_err();
             assert!(e.to_string().contains("`max_memory`"), "{e}");
+        }
+    }
+
+    #[test]
+    fn byte_counts_parse_with_units() {
+        assert_eq!(parse_bytes("8GB"), Some(8_000_000_000));
+        assert_eq!(parse_bytes("512MiB"), Some(512 << 20));
+        assert_eq!(parse_bytes("1KB"), Some(1000));
+        assert_eq!(parse_bytes(" 1.5 gib "), Some(3 << 29));
+        assert_eq!(parse_bytes("123"), Some(123));
+        assert_eq!(parse_bytes("0"), Some(0));
+        for bad in ["", "GB", "8 parsecs", "-1GB", "1e3", "nan"] {
+            assert_eq!(parse_bytes(bad), None, "{bad}");
         }
     }
 

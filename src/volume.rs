@@ -44,12 +44,17 @@ pub const MIN_SPACING: f64 = 1e-12;
 /// radii became 0 or infinite, and above 1e154 the EDT's squares overflowed `f64`.
 pub const MAX_SPACING: f64 = 1e12;
 
+/// The error for a `spacing` outside the supported range (or not three numbers).
+pub fn invalid_spacing(spacing: Vec<f64>) -> Error {
+    Error::InvalidSpacing { spacing, range: [MIN_SPACING, MAX_SPACING] }
+}
+
 /// Check that `spacing` holds three finite numbers in [`MIN_SPACING`, `MAX_SPACING`].
 pub fn check_spacing(spacing: [f64; 3]) -> Result<()> {
     if spacing.iter().all(|s| s.is_finite() && (MIN_SPACING..=MAX_SPACING).contains(s)) {
         Ok(())
     } else {
-        Err(Error::InvalidSpacing(spacing.to_vec()))
+        Err(invalid_spacing(spacing.to_vec()))
     }
 }
 

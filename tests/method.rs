@@ -361,7 +361,7 @@ fn spacings_out_of_range_and_unaddressable_shapes_are_refused() {
     let sk = Skeletonizer::new(Params::default()).unwrap();
     for bad in [[1e154, 1.0, 1.0], [1.0, 1e18, 1.0], [1.0, 1.0, 1e-23], [1e13; 3], [1e-13; 3]] {
         let e = sk.run(m.view(), bad, &mut |_| true).unwrap_err();
-        assert!(matches!(e, vesselflow::Error::InvalidSpacing(_)), "{bad:?}: {e}");
+        assert!(matches!(e, vesselflow::Error::InvalidSpacing { .. }), "{bad:?}: {e}");
         assert!(e.to_string().contains("[1e-12, 1e12]"), "{e}");
     }
     // In range on each axis, but the anisotropy puts the block beyond the cell keys.

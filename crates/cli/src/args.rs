@@ -341,7 +341,7 @@ fn spacing(m: &ArgMatches) -> Result<Option<[f64; 3]>, Failure> {
     let values: Vec<f64> = values.copied().collect();
     match <[f64; 3]>::try_from(values.as_slice()) {
         Ok(s) if s.iter().all(|x| x.is_finite() && *x > 0.0) => Ok(Some(s)),
-        _ => Err(Failure::Usage(format!("--spacing: {}", vesselflow::Error::InvalidSpacing(values)))),
+        _ => Err(Failure::Usage(format!("--spacing: {}", vesselflow::volume::invalid_spacing(values)))),
     }
 }
 

@@ -88,7 +88,7 @@ impl From<vesselflow::Error> for Failure {
         use vesselflow::Error;
         match e {
             Error::Interrupted => Failure::Interrupted,
-            Error::InvalidParameter { .. } | Error::UnknownParameter(_) | Error::InvalidSpacing(_) => {
+            Error::InvalidParameter { .. } | Error::UnknownParameter { .. } | Error::InvalidSpacing { .. } => {
                 Failure::Usage(e.to_string())
             }
             _ => Failure::Run(e.to_string()),

@@ -21,6 +21,7 @@ use crate::{IoError, MaskRule};
 use ndarray::Array3;
 use std::fmt::Write as _;
 use std::path::Path;
+use vesselflow::volume::{MAX_SPACING, MIN_SPACING};
 
 /// A mask read from a file, with the voxel spacing the file declares.
 #[derive(Debug, Clone, PartialEq)]
@@ -220,12 +221,9 @@ macro_rules! decode {
 }
 decode!(u8, i8, u16, i16, u32, i32, u64, i64, f32, f64);
 
-/// Spacing values outside `[MIN_SPACING, MAX_SPACING]` (in magnitude) are refused:
-/// they are header corruption, and squared or cubed later they would underflow
-/// to 0 or overflow to infinity.
-const MIN_SPACING: f64 = 1e-12;
-const MAX_SPACING: f64 = 1e12;
-
+/// Spacing values outside the core's `[MIN_SPACING, MAX_SPACING]` (in magnitude) are
+/// refused: they are header corruption, and squared or cubed later they would
+/// underflow to 0 or overflow to infinity.
 fn spacing_in_range(s: f64) -> bool {
     s.is_finite() && (MIN_SPACING..=MAX_SPACING).contains(&s.abs())
 }

@@ -21,12 +21,12 @@ use vesselflow_io::IoError;
 /// the run, if any; it takes the place of [`Error::Interrupted`].
 pub fn to_py(err: Error, pending: Option<PyErr>) -> PyErr {
     match err {
-        Error::InvalidParameter { .. } | Error::InvalidSpacing(_) | Error::InvalidMask(_) => {
+        Error::InvalidParameter { .. } | Error::InvalidSpacing { .. } | Error::InvalidMask(_) => {
             PyValueError::new_err(err.to_string())
         }
-        Error::UnknownParameter(ref name) => PyTypeError::new_err(format!(
+        Error::UnknownParameter { ref name, known } => PyTypeError::new_err(format!(
             "Skeletonizer() got an unexpected keyword argument '{name}' (parameters: {})",
-            vesselflow::Params::NAMES.join(", ")
+            known.join(", ")
         )),
         Error::Interrupted => pending.unwrap_or_else(|| PyKeyboardInterrupt::new_err("interrupted")),
         Error::ThreadPool { .. } | Error::Internal(_) => PyRuntimeError::new_err(err.to_string()),

@@ -133,7 +133,7 @@ impl Spacing {
     fn axes(self) -> PyResult<[f64; 3]> {
         match self {
             Spacing::Isotropic(s) => Ok([s; 3]),
-            Spacing::Axes(s) => s.try_into().map_err(|s| errors::core(vesselflow::Error::InvalidSpacing(s))),
+            Spacing::Axes(s) => s.try_into().map_err(|s| errors::core(vesselflow::volume::invalid_spacing(s))),
         }
     }
 }
