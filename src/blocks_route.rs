@@ -14,7 +14,7 @@
 //!   reach, counted twice so that the distance transform there is the whole volume's,
 //!   and the voxel-path margin). When the read is too small the block returns the halo
 //!   it needs, and the caller reads it again with that halo.
-//! - **Splice** ([`splice_routes`]): the routed parts, in block order, replace their
+//! - **Splice** ([`Skeletonizer::splice_routes`]): the routed parts, in block order, replace their
 //!   edges by paths through new nodes, numbered after the merged nodes in block order,
 //!   then edge order: the same graph, bit for bit, for any worker count.
 
@@ -26,6 +26,7 @@ use crate::grid::Csr;
 use crate::inside::SEARCH_LIMIT;
 use crate::medial::Field;
 use crate::pipeline::Skeletonizer;
+use crate::prune::prune_skeleton;
 use crate::vec3::base_cell;
 use crate::volume::{check_spacing, Voxel};
 use ndarray::ArrayView3;
@@ -163,38 +164,42 @@ impl Skeletonizer {
     }
 }
 
-/// The merged graph with the routed parts (in block order) spliced in (module doc).
-pub fn splice_routes(merged: Skeleton, parts: &[RoutedPart]) -> Result<Skeleton> {
-    let Skeleton { mut positions, mut radii, edges, spacing, info } = merged;
-    let n = positions.len();
-    let mut replaced: Vec<[usize; 2]> = vec![];
-    let mut added: Vec<[usize; 2]> = vec![];
-    for part in parts {
-        if part.halo.is_some() {
-            return Err(Error::Internal("a routed block was read with too small a halo".into()));
-        }
-        let base = positions.len();
-        let k = part.positions.len();
-        let node = |i: i64| -> Result<usize> {
-            let v = if i >= 0 { i as usize } else { base + (-i - 1) as usize };
-            if (i >= 0 && v >= n) || (i < 0 && v >= base + k) {
-                return Err(Error::InvalidMask(format!("routed block refers to node {i} it does not hold")));
+impl Skeletonizer {
+    /// The merged graph with the routed parts (in block order) spliced in (module
+    /// doc), and last its short spurs pruned ([`crate::prune`]).
+    pub fn splice_routes(&self, merged: Skeleton, parts: &[RoutedPart]) -> Result<Skeleton> {
+        let Skeleton { mut positions, mut radii, edges, spacing, info } = merged;
+        let n = positions.len();
+        let mut replaced: Vec<[usize; 2]> = vec![];
+        let mut added: Vec<[usize; 2]> = vec![];
+        for part in parts {
+            if part.halo.is_some() {
+                return Err(Error::Internal("a routed block was read with too small a halo".into()));
             }
-            Ok(v)
-        };
-        for &[a, b] in &part.edges {
-            let (a, b) = (node(a)?, node(b)?);
-            added.push([a.min(b), a.max(b)]);
+            let base = positions.len();
+            let k = part.positions.len();
+            let node = |i: i64| -> Result<usize> {
+                let v = if i >= 0 { i as usize } else { base + (-i - 1) as usize };
+                if (i >= 0 && v >= n) || (i < 0 && v >= base + k) {
+                    return Err(Error::InvalidMask(format!("routed block refers to node {i} it does not hold")));
+                }
+                Ok(v)
+            };
+            for &[a, b] in &part.edges {
+                let (a, b) = (node(a)?, node(b)?);
+                added.push([a.min(b), a.max(b)]);
+            }
+            replaced.extend(part.replaced.iter().map(|e| e.map(|x| x as usize)));
+            positions.extend_from_slice(&part.positions);
+            radii.extend_from_slice(&part.radii);
         }
-        replaced.extend(part.replaced.iter().map(|e| e.map(|x| x as usize)));
-        positions.extend_from_slice(&part.positions);
-        radii.extend_from_slice(&part.radii);
+        replaced.sort_unstable();
+        let mut out: Vec<[usize; 2]> = edges.into_iter().filter(|e| replaced.binary_search(e).is_err()).collect();
+        out.extend(added);
+        out.sort_unstable();
+        // Last, the short spurs, as a single run prunes its graph.
+        let out = prune_skeleton(Skeleton { positions, radii, edges: out, spacing, info }, self.params().prune_spurs);
+        crate::pipeline::check_skeleton(&out)?;
+        Ok(out)
     }
-    replaced.sort_unstable();
-    let mut out: Vec<[usize; 2]> = edges.into_iter().filter(|e| replaced.binary_search(e).is_err()).collect();
-    out.extend(added);
-    out.sort_unstable();
-    let out = Skeleton { positions, radii, edges: out, spacing, info };
-    crate::pipeline::check_skeleton(&out)?;
-    Ok(out)
 }

@@ -40,6 +40,8 @@ pub struct RunInfo {
     pub cg_unconverged: usize,
     /// Side branches grown back at output (`Params::sprouts`).
     pub sprouts: usize,
+    /// Short terminal spurs removed last (`Params::prune_spurs`).
+    pub pruned_spurs: usize,
     /// Wall time per stage, in pipeline order.
     pub stage_seconds: Vec<StageTime>,
 }

@@ -23,6 +23,7 @@
 //! | [`sprouts`] | side branches the contraction swallowed grown back from the mask (`sprouts`) | — |
 //! | [`radius`] | node radii: cross-section area scaled by median over RMS chord length (robust to bubbles), or the plain area, or the EDT less a constant | — |
 //! | [`edges_inside`] | edges that cross background subdivided by nodes on the mask | — |
+//! | [`prune`] | terminal spurs shorter than their junction's radius removed (`prune_spurs`) | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
@@ -67,6 +68,7 @@ pub mod packed;
 pub mod params;
 pub mod pipeline;
 pub mod precondition;
+pub mod prune;
 pub mod radius;
 pub mod resample;
 pub mod shapes;

@@ -123,6 +123,11 @@ pub struct Params {
     /// ([`crate::medial`]). Off: nodes stay where the flow left them, at the local
     /// centre of mass of the mask.
     pub medial: bool,
+    /// Last, remove the terminal spurs shorter than this many radii of the junction
+    /// they join, until none is left ([`crate::prune`]): at 1 a spur that ends inside
+    /// its parent's lumen, a knot beside the centreline rather than a vessel. 0 keeps
+    /// every spur.
+    pub prune_spurs: f64,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,
     /// Weight of the l2-norm Laplacian. Only the ratios alpha : beta : gamma matter; the
@@ -181,6 +186,7 @@ impl Default for Params {
             anchor_ends: true,
             sprouts: true,
             medial: true,
+            prune_spurs: 1.0,
             eps_gamma: 10.0,
             alpha: 0.25,
             beta: 0.5,
@@ -246,7 +252,7 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 24] = [
+    pub const NAMES: [&'static str; 25] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
@@ -256,6 +262,7 @@ impl Params {
         "anchor_ends",
         "sprouts",
         "medial",
+        "prune_spurs",
         "eps_gamma",
         "alpha",
         "beta",
@@ -317,6 +324,7 @@ impl Params {
                 self.max_cycle_nodes = k;
             }
             "coarse_cell" => self.coarse_cell = in_range(name, as_f64(name, v)?, 0.0, 4.0, false)?,
+            "prune_spurs" => self.prune_spurs = in_range(name, as_f64(name, v)?, 0.0, 100.0, false)?,
             "stop_ratio" => self.stop_ratio = in_range(name, as_f64(name, v)?, 0.0, 1.0, true)?,
             "stall_ratio" => self.stall_ratio = in_range(name, as_f64(name, v)?, 0.0, 0.5, false)?,
             "area_reference" => {
@@ -387,6 +395,7 @@ impl Params {
             ("anchor_ends", Value::Bool(self.anchor_ends)),
             ("sprouts", Value::Bool(self.sprouts)),
             ("medial", Value::Bool(self.medial)),
+            ("prune_spurs", Value::Float(self.prune_spurs)),
             ("eps_gamma", Value::Float(self.eps_gamma)),
             ("alpha", Value::Float(self.alpha)),
             ("beta", Value::Float(self.beta)),

@@ -19,6 +19,7 @@ use crate::memory;
 use crate::packed::{PackedCsr, PackedNodes};
 use crate::params::{AreaReference, Params, STALL_AREA};
 use crate::precondition::{slab_axes, slab_order, NormalMatrix};
+use crate::prune::prune_skeleton;
 use crate::radius::output_radii;
 use crate::resample;
 use crate::solver::{self, SolveStats};
@@ -477,12 +478,16 @@ impl Skeletonizer {
                 spacing,
                 info: RunInfo::default(),
             };
+            // Last, the short spurs; a chunked run's blocks leave them to the end of
+            // the merge, whose graph their nodes' voxels build.
+            let out = if core.is_none() { prune_skeleton(out, p.prune_spurs) } else { out };
             Ok((out, sprouts))
         })?;
         stop.check()?;
         check_skeleton(&out)?;
         report(observer, "output", 0, out.positions.len(), f64::NAN)?;
         info.sprouts = grown.len();
+        info.pruned_spurs = out.info.pruned_spurs;
         info.stage_seconds = clock.0;
         Ok((Skeleton { info, ..out }, fate, grown))
     }

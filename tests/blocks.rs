@@ -120,7 +120,7 @@ fn the_chunk_pass_finds_the_largest_radius_with_the_outside_as_background() {
 /// its halo cannot hold the routing, and refuses an edge another block owns.
 #[test]
 fn the_routing_phase_takes_a_chord_back_inside_its_bend() {
-    use vesselflow::blocks_route::{owner_voxel, splice_routes};
+    use vesselflow::blocks_route::owner_voxel;
     use vesselflow::edges_inside::outside_run;
     let mut mask = Array3::<u8>::zeros((3, 40, 40));
     for t in 4..=30 {
@@ -151,7 +151,7 @@ fn the_routing_phase_takes_a_chord_back_inside_its_bend() {
     let part = route(lo, hi, core).unwrap();
     assert_eq!(part.halo, None);
     assert_eq!(part.replaced, vec![[0, 1]]);
-    let out = splice_routes(merged.clone(), std::slice::from_ref(&part)).unwrap();
+    let out = sk.splice_routes(merged.clone(), std::slice::from_ref(&part)).unwrap();
     assert!(out.len() > 2 && out.radii.len() == out.len());
     assert_eq!(out.edges.len(), out.len() - 1);
     for &[a, b] in &out.edges {
@@ -159,7 +159,7 @@ fn the_routing_phase_takes_a_chord_back_inside_its_bend() {
     }
     // The same whole volume as one block: the same routed graph.
     let whole = route([0; 3], volume, [[0, 3], [0, 40], [0, 40]]).unwrap();
-    assert_eq!(splice_routes(merged, &[whole]).unwrap().positions, out.positions);
+    assert_eq!(sk.splice_routes(merged, &[whole]).unwrap().positions, out.positions);
     // A block whose core does not hold the owner voxel refuses the edge.
     assert!(route([0, 0, 0], [3, 40, 40], [[0, 3], [0, 16], [0, 40]]).is_err());
 }

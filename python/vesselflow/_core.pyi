@@ -21,6 +21,7 @@ __all__ = [
     "merge_blocks",
     "owner_voxels",
     "param_defaults",
+    "prune_spurs",
     "route_block",
     "splice_routes",
     "to_frame",
@@ -124,14 +125,25 @@ def route_block(
 ) -> dict[str, Any]:
     """The routing phase of one block: the routed part, or the halo it needs."""
 
+def prune_spurs(
+    positions: NDArray[np.float64],
+    radii: NDArray[np.float64],
+    edges: NDArray[np.int64],
+    k: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], int]:
+    """Which nodes and edges pruning the spurs shorter than ``k`` junction radii keeps, and
+    how many spurs it removes."""
+
 def splice_routes(
+    skeletonizer: Skeletonizer,
     positions: NDArray[np.float64],
     radii: NDArray[np.float64],
     edges: NDArray[np.int64],
     parts: list[dict[str, Any]],
     spacing: Sequence[float],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], dict[str, Any]]:
-    """The merged graph with the routed parts spliced in, and an info dict."""
+    """The merged graph with the routed parts spliced in and its short spurs pruned, and an
+    info dict (``pruned_spurs``)."""
 
 def merge_blocks(
     skeletonizer: Skeletonizer,

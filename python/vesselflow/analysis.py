@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.cluster.hierarchy import DisjointSet
 
+from vesselflow import _core
 from vesselflow.graph import VesselGraph
 
 if TYPE_CHECKING:
@@ -382,31 +383,9 @@ def prune(graph: VesselGraph, min_length_over_radius: float = 2.0) -> VesselGrap
     k = float(min_length_over_radius)
     if not (math.isfinite(k) and k >= 0):
         raise ValueError(f"`min_length_over_radius` must be finite and >= 0, got {k}")
-    edge_kept = np.ones(graph.n_edges, dtype=bool)
-    node_kept = np.ones(graph.n_nodes, dtype=bool)
-    pruned = 0
-    while True:
-        live = np.flatnonzero(edge_kept)
-        traced = _trace(graph.n_nodes, graph.edges[live])
-        degree = np.bincount(graph.edges[live].ravel(), minlength=graph.n_nodes)
-        owner, length, _, _ = _segments(graph, traced)
-        total = np.bincount(owner, weights=length, minlength=len(traced))
-        spurs: dict[int, list[tuple[float, Branch]]] = {}
-        for b, branch_length in zip(traced, total.tolist()):
-            if b.branch_type != JUNCTION_ENDPOINT:
-                continue
-            junction = b.nodes[0] if degree[b.nodes[0]] > 2 else b.nodes[-1]
-            if branch_length < k * graph.radii[junction]:
-                spurs.setdefault(junction, []).append((branch_length, b))
-        if not spurs:
-            break
-        for junction, candidates in spurs.items():
-            candidates.sort(key=lambda c: c[0])
-            for _, b in candidates[: degree[junction] - 2]:
-                edge_kept[live[b.edges]] = False
-                node_kept[[n for n in b.nodes if n != junction]] = False
-                pruned += 1
-
+    node_kept, edge_kept, pruned = _core.prune_spurs(
+        graph.positions, graph.radii, graph.edges.astype(np.int64), k
+    )
     new_id = np.cumsum(node_kept) - 1
     return VesselGraph(
         positions=graph.positions[node_kept],

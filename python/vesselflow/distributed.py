@@ -373,9 +373,15 @@ def skeletonize(
         routed = run.gather(futures)
         for status, _ in routed:
             counts["routes_" + status] = counts.get("routes_" + status, 0) + 1
-        positions, radii_out, edges, _ = _core.splice_routes(
-            positions, radii_out, edges, [part for _, part in routed], list(spacing3)
+        positions, radii_out, edges, spliced = _core.splice_routes(
+            _core.Skeletonizer(**core_params),
+            positions,
+            radii_out,
+            edges,
+            [part for _, part in routed],
+            list(spacing3),
         )
+        info["pruned_spurs"] = spliced["pruned_spurs"]
         seconds["route"] = time.perf_counter() - clock
     finally:
         if own is not None:

@@ -68,6 +68,12 @@ class Skeletonizer:
         into a touching vessel), and every junction to where its branches' centrelines
         meet, each at most 0.6 radii away (not in the paper; ``False`` leaves nodes at
         the local centre of mass of the mask).
+    prune_spurs : float in [0, 100]
+        Last, remove the terminal spurs (junction-to-end branches) shorter than this many
+        radii of their junction, until none is left, as :meth:`VesselGraph.prune` does
+        (not in the paper). At the default 1 only spurs that end inside their parent's
+        lumen go: knots beside the centreline, not vessels; 0 keeps every spur.
+        ``vesselflow.distributed`` prunes the merged graph.
     eps_gamma : float >= 1
         Anchoring factor of skeletal nodes.
     alpha, beta : float >= 0
@@ -140,6 +146,7 @@ class Skeletonizer:
         anchor_ends: bool = True,
         sprouts: bool = True,
         medial: bool = True,
+        prune_spurs: float = 1.0,
         eps_gamma: float = 10.0,
         alpha: float = 0.25,
         beta: float = 0.5,

@@ -103,6 +103,10 @@ fn parameter_help(name: &str) -> Option<&'static str> {
             "After refinement, move nodes onto the ridge of the distance transform and junctions to where their \
              branches meet (at most 0.6 radii)."
         }
+        "prune_spurs" => {
+            "Last, remove terminal spurs shorter than this many radii (>= 0) of their junction, until none is \
+             left (0 keeps them all)."
+        }
         "eps_gamma" => "How many times (>= 1) harder than the others nodes already on the centreline are anchored.",
         "alpha" => {
             "Weight (>= 0) of the smoothing (l2-norm) Laplacian; only the ratios of alpha, beta and gamma matter."

@@ -125,6 +125,7 @@ pub fn run_info_json(info: &RunInfo) -> Value {
         "cg_iterations": info.cg_iterations,
         "cg_unconverged": info.cg_unconverged,
         "sprouts": info.sprouts,
+        "pruned_spurs": info.pruned_spurs,
         "stage_seconds": stage_seconds,
     })
 }

@@ -41,6 +41,7 @@ fn skeleton() -> Skeleton {
             cg_iterations: vec![31, 20, 12],
             cg_unconverged: 0,
             sprouts: 3,
+            pruned_spurs: 2,
             stage_seconds: vec![
                 StageTime { stage: "edt", seconds: 0.01 },
                 StageTime { stage: "grid", seconds: 0.02 },
@@ -77,6 +78,7 @@ fn check_info(info: &Value, expected: &RunInfo) {
     assert_eq!(info["cg_iterations"], serde_json::json!([31, 20, 12]));
     assert_eq!(info["cg_unconverged"], 0);
     assert_eq!(info["sprouts"], 3);
+    assert_eq!(info["pruned_spurs"], 2);
     let stages: Vec<(&String, f64)> =
         info["stage_seconds"].as_object().unwrap().iter().map(|(k, v)| (k, v.as_f64().unwrap())).collect();
     let want: Vec<(String, f64)> = expected.stage_seconds.iter().map(|t| (t.stage.to_string(), t.seconds)).collect();
@@ -84,7 +86,7 @@ fn check_info(info: &Value, expected: &RunInfo) {
     for ((k, v), (wk, wv)) in stages.iter().zip(&want) {
         assert_eq!((k.as_str(), *v), (wk.as_str(), *wv), "stage order and values");
     }
-    assert_eq!(info.as_object().unwrap().len(), 14, "every RunInfo field, nothing else");
+    assert_eq!(info.as_object().unwrap().len(), 15, "every RunInfo field, nothing else");
 }
 
 fn check_params(params: &Value) {

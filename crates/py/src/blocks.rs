@@ -8,7 +8,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use vesselflow::blocks::{BlockPart, NodeRecord};
-use vesselflow::blocks_route::{owner_voxel, splice_routes as splice, RoutedPart};
+use vesselflow::blocks_route::{owner_voxel, RoutedPart};
 use vesselflow::blocks_sprouts::SproutRecord;
 use vesselflow::graph::{RunInfo, Skeleton};
 use vesselflow::Stop;
@@ -81,7 +81,7 @@ pub fn merge_blocks<'py>(
     skeleton_to_py(py, skeleton)
 }
 
-fn points(a: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<Vec<[f64; 3]>> {
+pub(crate) fn points(a: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<Vec<[f64; 3]>> {
     let a = a.as_array();
     if a.ncols() != 3 {
         return Err(PyValueError::new_err(format!("`{name}` must have 3 columns")));
@@ -89,7 +89,7 @@ fn points(a: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<Vec<[f64; 3]>> 
     Ok(a.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect())
 }
 
-fn pairs_of<T: Copy + numpy::Element>(a: &PyReadonlyArray2<'_, T>, name: &str) -> PyResult<Vec<[T; 2]>> {
+pub(crate) fn pairs_of<T: Copy + numpy::Element>(a: &PyReadonlyArray2<'_, T>, name: &str) -> PyResult<Vec<[T; 2]>> {
     let a = a.as_array();
     if a.ncols() != 2 {
         return Err(PyValueError::new_err(format!("`{name}` must have 2 columns")));
@@ -171,10 +171,12 @@ pub fn route_block<'py>(
 }
 
 /// The merged graph `(positions, radii, edges)` with the routed parts (dicts from
-/// `route_block`, in block order) spliced in, as `(positions, radii, edges, info)`.
+/// `route_block`, in block order) spliced in and its short spurs pruned, as
+/// `(positions, radii, edges, info)`.
 #[pyfunction]
 pub fn splice_routes<'py>(
     py: Python<'py>,
+    skeletonizer: PyRef<'py, PySkeletonizer>,
     positions: PyReadonlyArray2<'py, f64>,
     radii: PyReadonlyArray1<'py, f64>,
     edges: PyReadonlyArray2<'py, i64>,
@@ -213,8 +215,11 @@ pub fn splice_routes<'py>(
         spacing,
         info: RunInfo::default(),
     };
+    let sk = &skeletonizer.inner;
     let out = py
-        .detach(|| errors::no_panic(|| format!("{} routed blocks", routed.len()), || splice(merged, &routed)))?
+        .detach(|| {
+            errors::no_panic(|| format!("{} routed blocks", routed.len()), || sk.splice_routes(merged, &routed))
+        })?
         .map_err(errors::core)?;
     skeleton_to_py(py, out)
 }

@@ -12,6 +12,7 @@ mod errors;
 mod graph_io;
 mod memory;
 mod params;
+mod prune;
 mod skeletonizer;
 mod watch;
 
@@ -27,6 +28,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(memory::usable_memory, m)?)?;
     m.add_function(wrap_pyfunction!(graph_io::write_graph, m)?)?;
     m.add_function(wrap_pyfunction!(graph_io::to_frame, m)?)?;
+    m.add_function(wrap_pyfunction!(prune::prune_spurs, m)?)?;
     m.add_function(wrap_pyfunction!(cli::cli_main, m)?)?;
     blocks::register(m)?;
     Ok(())
