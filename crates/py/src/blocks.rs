@@ -97,6 +97,20 @@ pub(crate) fn pairs_of<T: Copy + numpy::Element>(a: &PyReadonlyArray2<'_, T>, na
     Ok(a.rows().into_iter().map(|r| [r[0], r[1]]).collect())
 }
 
+/// The rows of `edges` as pairs of node ids below `n`.
+pub(crate) fn node_pairs(edges: &PyReadonlyArray2<'_, i64>, n: usize) -> PyResult<Vec<[usize; 2]>> {
+    pairs_of(edges, "edges")?
+        .into_iter()
+        .map(|e| {
+            let id = |i: i64| usize::try_from(i).ok().filter(|&i| i < n);
+            match (id(e[0]), id(e[1])) {
+                (Some(a), Some(b)) => Ok([a, b]),
+                _ => Err(PyValueError::new_err(format!("edge {e:?} refers to a node outside 0..{n}"))),
+            }
+        })
+        .collect()
+}
+
 /// The owner voxel of every edge (rows of global node ids into `positions`), for the
 /// routing phase: an `(m, 3)` array.
 #[pyfunction]
@@ -204,17 +218,9 @@ pub fn splice_routes<'py>(
             halo,
         });
     }
-    let negative = |_| PyValueError::new_err("edges must be node ids >= 0");
-    let merged = Skeleton {
-        positions: points(&positions, "positions")?,
-        radii: radii.as_array().to_vec(),
-        edges: pairs_of(&edges, "edges")?
-            .into_iter()
-            .map(|[a, b]| Ok([usize::try_from(a).map_err(negative)?, usize::try_from(b).map_err(negative)?]))
-            .collect::<PyResult<_>>()?,
-        spacing,
-        info: RunInfo::default(),
-    };
+    let positions = points(&positions, "positions")?;
+    let edges = node_pairs(&edges, positions.len())?;
+    let merged = Skeleton { positions, radii: radii.as_array().to_vec(), edges, spacing, info: RunInfo::default() };
     let sk = &skeletonizer.inner;
     let out = py
         .detach(|| {
@@ -291,14 +297,7 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
             radius: radius[i],
         })
         .collect();
-    let pairs = |name: &str| -> PyResult<Vec<[u32; 2]>> {
-        let a: PyReadonlyArray2<u32> = get(name)?.extract()?;
-        let a = a.as_array();
-        if a.ncols() != 2 {
-            return Err(PyValueError::new_err(format!("block part `{name}` must have 2 columns")));
-        }
-        Ok(a.rows().into_iter().map(|r| [r[0], r[1]]).collect())
-    };
+    let pairs = |name: &str| -> PyResult<Vec<[u32; 2]>> { pairs_of(&get(name)?.extract()?, name) };
     let voxel: PyReadonlyArray1<u64> = get("face_voxel")?.extract()?;
     let face_cell: PyReadonlyArray1<u32> = get("face_cell")?.extract()?;
     if voxel.len() != face_cell.len() {

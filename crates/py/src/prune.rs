@@ -5,7 +5,7 @@ use numpy::{PyArray1, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use crate::blocks::{pairs_of, points};
+use crate::blocks::{node_pairs, points};
 
 /// Which nodes and edges of the graph `(positions, radii, edges)` pruning its spurs
 /// shorter than `k` junction radii keeps, and how many spurs it removes:
@@ -25,16 +25,7 @@ pub fn prune_spurs<'py>(
     if radii.len() != n {
         return Err(PyValueError::new_err(format!("{} radii for {n} nodes", radii.len())));
     }
-    let edges = pairs_of(&edges, "edges")?
-        .into_iter()
-        .map(|e| {
-            let id = |i: i64| usize::try_from(i).ok().filter(|&i| i < n);
-            match (id(e[0]), id(e[1])) {
-                (Some(a), Some(b)) => Ok([a, b]),
-                _ => Err(PyValueError::new_err(format!("edge {e:?} refers to a node outside 0..{n}"))),
-            }
-        })
-        .collect::<PyResult<Vec<_>>>()?;
+    let edges = node_pairs(&edges, n)?;
     let kept = py.detach(|| vesselflow::prune::prune_spurs(n, &edges, &positions, &radii, k));
     Ok((PyArray1::from_vec(py, kept.nodes), PyArray1::from_vec(py, kept.edges), kept.spurs))
 }
