@@ -52,7 +52,7 @@
 use crate::error::Result;
 use crate::grid::Csr;
 use crate::inside::voxel_of;
-use crate::vec3::{base_cell, cross, dot, norm, sub};
+use crate::vec3::{base_cell, cross, dot, norm, sub, unit};
 use crate::volume::{edt_squared_rows, foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use rayon::prelude::*;
@@ -507,17 +507,10 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
 /// direction from there to the last. `None` with fewer than two such nodes or when they
 /// coincide.
 fn outside_parent(stretch: &[[f64; 3]], centre: [f64; 3], t: [f64; 3], r: f64) -> Option<([f64; 3], [f64; 3])> {
-    let off_axis = |q: &&[f64; 3]| {
-        let e = sub(**q, centre);
-        let along = dot(e, t);
-        norm(std::array::from_fn(|d| e[d] - along * t[d])) >= r
-    };
-    let mut outside = stretch.iter().filter(off_axis);
+    let mut outside = stretch.iter().filter(|&&q| norm(cross(sub(q, centre), t)) >= r);
     let from = *outside.next()?;
-    let to = *outside.last()?;
-    let d = sub(to, from);
-    let n = norm(d);
-    (n > 0.0).then(|| (from, d.map(|v| v / n)))
+    let to = *outside.next_back()?;
+    Some((from, unit(sub(to, from))?))
 }
 
 /// The solution of the symmetric 3 × 3 system `a x = b` by Cramer's rule; `None` when
