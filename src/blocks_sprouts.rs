@@ -11,9 +11,9 @@
 //! attached (a block's graph and the merged graph differ there by more than a seam's
 //! float rounding).
 
+use crate::edge_grid::EdgeGrid;
 use crate::graph::Skeleton;
-use crate::vec3::{base_cell, norm, projection, sub};
-use rustc_hash::FxHashMap;
+use crate::vec3::{base_cell, norm, sub};
 
 /// How far (base cells) a sprout's start may lie from the merged edge it starts on.
 pub const SEARCH_CELLS: f64 = 4.0;
@@ -46,84 +46,6 @@ impl SproutRecord {
     }
 }
 
-/// Edges (indices into `edges`) by the cells of side `side` their bounding boxes touch,
-/// kept only for the cells a search may read (those around the sprouts' starts), so
-/// that the grid grows with the sprouts, not with the graph.
-struct EdgeGrid {
-    side: f64,
-    cells: FxHashMap<[i64; 3], Vec<u32>>,
-}
-
-impl EdgeGrid {
-    /// An empty grid over the cells within `side` of the `starts`.
-    fn around(starts: impl Iterator<Item = [f64; 3]>, side: f64) -> EdgeGrid {
-        let mut grid = EdgeGrid { side, cells: FxHashMap::default() };
-        for p in starts {
-            for key in grid.near(p) {
-                grid.cells.entry(key).or_default();
-            }
-        }
-        grid
-    }
-
-    fn cell(&self, p: [f64; 3]) -> [i64; 3] {
-        p.map(|x| (x / self.side).floor() as i64)
-    }
-
-    /// The lowest and highest cell of the box from `a` to `b` (any two corners).
-    fn bounds(&self, a: [f64; 3], b: [f64; 3]) -> ([i64; 3], [i64; 3]) {
-        (self.cell(std::array::from_fn(|d| a[d].min(b[d]))), self.cell(std::array::from_fn(|d| a[d].max(b[d]))))
-    }
-
-    /// The cells of the box from `a` to `b` (any two corners).
-    fn boxed(&self, a: [f64; 3], b: [f64; 3]) -> impl Iterator<Item = [i64; 3]> {
-        let (lo, hi) = self.bounds(a, b);
-        (lo[0]..=hi[0]).flat_map(move |i| (lo[1]..=hi[1]).flat_map(move |j| (lo[2]..=hi[2]).map(move |l| [i, j, l])))
-    }
-
-    /// The cells within `side` of `p` (a search's cells).
-    fn near(&self, p: [f64; 3]) -> impl Iterator<Item = [i64; 3]> {
-        self.boxed(p.map(|x| x - self.side), p.map(|x| x + self.side))
-    }
-
-    /// Files edge `k` (`a`–`b`) under every kept cell its bounding box touches: the
-    /// box's cells when they are fewer than the kept ones, else the kept cells inside
-    /// the box (so a long edge costs no more than the kept cells).
-    fn insert(&mut self, k: usize, a: [f64; 3], b: [f64; 3]) {
-        let (lo, hi) = self.bounds(a, b);
-        let span = (0..3).map(|d| (hi[d] as i128 - lo[d] as i128 + 1) as f64).product::<f64>();
-        if span <= self.cells.len() as f64 {
-            for key in self.boxed(a, b) {
-                if let Some(v) = self.cells.get_mut(&key) {
-                    v.push(k as u32);
-                }
-            }
-        } else {
-            for (key, v) in self.cells.iter_mut() {
-                if (0..3).all(|d| lo[d] <= key[d] && key[d] <= hi[d]) {
-                    v.push(k as u32);
-                }
-            }
-        }
-    }
-
-    /// The edge nearest `p` within `side` (ties to the lower index).
-    fn nearest(&self, p: [f64; 3], edges: &[[usize; 2]], positions: &[[f64; 3]]) -> Option<usize> {
-        let mut best: Option<(f64, usize)> = None;
-        for key in self.near(p) {
-            for &k in self.cells.get(&key).map_or(&[][..], |v| v) {
-                let k = k as usize;
-                let [a, b] = edges[k];
-                let (_, d) = projection(p, positions[a], positions[b]);
-                if d <= self.side && best.is_none_or(|b| (d, k) < b) {
-                    best = Some((d, k));
-                }
-            }
-        }
-        best.map(|(_, k)| k)
-    }
-}
-
 /// The merged graph `g` with `sprouts` attached (module doc), given in the order they
 /// are attached; and how many were. `g`'s positions must be finite and every sprout
 /// valid ([`SproutRecord::is_valid`]).
@@ -138,7 +60,8 @@ pub fn attach_sprouts(mut g: Skeleton, sprouts: &[&SproutRecord]) -> (Skeleton, 
     }
     let mut attached = 0;
     for s in sprouts {
-        let Some(k) = grid.nearest(s.start, &g.edges, &g.positions) else { continue };
+        let segment = |k: usize| (g.positions[g.edges[k][0]], g.positions[g.edges[k][1]]);
+        let Some((k, _)) = grid.nearest(s.start, segment) else { continue };
         let [a, b] = g.edges[k];
         let start = if s.split {
             let j = g.positions.len();

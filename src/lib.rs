@@ -54,6 +54,7 @@ pub mod cancel;
 pub mod coarse;
 pub mod cycles;
 pub mod decimate;
+mod edge_grid;
 pub mod edges_inside;
 pub mod ends;
 pub mod error;

@@ -25,6 +25,7 @@
 //! [`NODE_STEP`] cells and then centred like every other node
 //! ([`crate::medial::recentre`]).
 
+use crate::edge_grid::EdgeGrid;
 use crate::ends::edge_voxels;
 use crate::error::Result;
 use crate::grid::Csr;
@@ -132,6 +133,10 @@ pub struct Reach<'a> {
     dist: Vec<u32>,
     from: Vec<u32>,
 }
+
+/// How far (in the coarsest spacing) the grid searches for the edge nearest a path's
+/// root, a voxel the graph's edges pass through: farther, every edge is scanned.
+const ROOT_SEARCH: f64 = 2.0;
 
 /// Step costs per base cell (see [`Reach`]).
 const UNITS: f64 = 16.0;
@@ -252,19 +257,34 @@ fn sprout_round(
     drop(lobe);
     // Farthest tips first: a long branch claims its path before the lobes along it.
     tips.sort_by(|&a, &b| d(b).total_cmp(&d(a)).then(a.cmp(&b)));
+    // Back from each tip: the path to the graph, tip first (distances fall strictly
+    // along it, so it ends).
+    let paths: Vec<Vec<usize>> = tips
+        .iter()
+        .map(|&tip| {
+            let mut path = vec![tip];
+            let mut i = tip;
+            while d(i) > 0.0 {
+                i = reach.from[i] as usize;
+                path.push(i);
+            }
+            path
+        })
+        .collect();
     let mut edges = g.edge_list();
     let mut pos = positions.to_vec();
+    // The edges near the paths' roots (on the graph's voxels), for the nearest-edge
+    // search; kept up to date as edges are split and sprouts added.
+    let coarse = reach.spacing.iter().copied().fold(0.0, f64::max);
+    let roots = paths.iter().map(|path| reach.centre(path[path.len() - 1]));
+    let mut grid = EdgeGrid::around(roots, ROOT_SEARCH * coarse);
+    for (k, &(a, b)) in edges.iter().enumerate() {
+        grid.insert(k, pos[a as usize], pos[b as usize]);
+    }
     let mut claimed: FxHashSet<usize> = FxHashSet::default();
     let mut sprouts = vec![];
-    for tip in tips {
-        // Back from the tip: the path to the graph, tip first (distances fall strictly
-        // along it, so it ends).
-        let mut path = vec![tip];
-        let mut i = tip;
-        while d(i) > 0.0 {
-            i = reach.from[i] as usize;
-            path.push(i);
-        }
+    for path in paths {
+        let tip = path[0];
         if path.iter().any(|i| claimed.contains(i)) {
             continue;
         }
@@ -275,7 +295,8 @@ fn sprout_round(
         };
         // The edge nearest the root, split at the root's projection onto it.
         let root = *path.last().unwrap();
-        let Some((k, t)) = nearest_edge(&edges, &pos, reach.centre(root)) else { continue };
+        let near = grid.nearest(reach.centre(root), |k| (pos[edges[k].0 as usize], pos[edges[k].1 as usize]));
+        let Some((k, t)) = near.or_else(|| nearest_edge(&edges, &pos, reach.centre(root))) else { continue };
         let (a, b) = edges[k];
         let split: [f64; 3] =
             std::array::from_fn(|d| pos[a as usize][d] + t * (pos[b as usize][d] - pos[a as usize][d]));
@@ -294,8 +315,10 @@ fn sprout_round(
         } else {
             let j = pos.len() as u32;
             pos.push(split);
+            // Edge `k`'s new end lies inside its old box, whose cells it stays filed under.
             edges[k] = (a, j);
             edges.push((b.min(j), b.max(j)));
+            grid.insert(edges.len() - 1, pos[b as usize], split);
             (true, j)
         };
         // Nodes every NODE_STEP cells from the root to the end.
@@ -309,6 +332,7 @@ fn sprout_round(
                 let j = pos.len() as u32;
                 pos.push(reach.centre(w[1]));
                 edges.push((prev.min(j), prev.max(j)));
+                grid.insert(edges.len() - 1, pos[prev as usize], pos[j as usize]);
                 prev = j;
                 run = 0.0;
             }
@@ -322,7 +346,8 @@ fn sprout_round(
     Ok((Csr::from_sorted_edges(pos.len(), &edges), pos, sprouts))
 }
 
-/// The edge (index into `edges`) nearest `p` and the parameter of `p`'s projection on it.
+/// The edge (index into `edges`) nearest `p` and the parameter of `p`'s projection on it,
+/// by a scan of every edge (for a root farther than the grid's search from every edge).
 fn nearest_edge(edges: &[(u32, u32)], pos: &[[f64; 3]], p: [f64; 3]) -> Option<(usize, f64)> {
     edges
         .iter()
