@@ -15,8 +15,7 @@
 //!   leaves: 32 % of the tuning forests' true junctions had no graph junction within
 //!   σ = 2 voxels with it, 26 % now, thinning 19 %): when two branches run nearly straight through
 //!   ([`STRAIGHT`]) they are the parent vessel, one line, and the junction is the point
-//!   on the parent's axis nearest (least squares) to the other branches' lines, each
-//!   child's line through its nodes outside the parent's lumen (`outside_parent`);
+//!   on the parent's axis nearest (least squares) to the other branches' lines;
 //!   otherwise (a fork) the point nearest to every branch's line. It moves at most
 //!   [`JUNCTION_CAP`] radii. The ridge alone would not do: where a thin vessel leaves a
 //!   thick one the transform is largest on the thick one's axis, so its maximum (or
@@ -52,7 +51,7 @@
 use crate::error::Result;
 use crate::grid::Csr;
 use crate::inside::voxel_of;
-use crate::vec3::{base_cell, cross, dot, norm, sub, unit};
+use crate::vec3::{base_cell, cross, dot, norm, sub};
 use crate::volume::{edt_squared_rows, foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use rayon::prelude::*;
@@ -414,8 +413,7 @@ type Branch = ([f64; 3], [f64; 3], Vec<[f64; 3]>);
 /// branches are nearly opposite ([`STRAIGHT`]) they are the parent vessel running
 /// through: one line through both stretches (its direction from the far end of one
 /// to the far end of the other), and the junction is the point on it nearest, in
-/// least squares, to the other branches' lines, each through its nodes outside the
-/// parent's lumen ([`outside_parent`]; `r` is the junction's radius). Otherwise (a fork with no straight
+/// least squares, to the other branches' lines. Otherwise (a fork with no straight
 /// parent) the point nearest, in least squares, to every branch's line. `None` when
 /// the lines are (nearly) parallel.
 fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) -> Option<[f64; 3]> {
@@ -469,16 +467,12 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
         let t = t.map(|v| v / n);
         let count = (sx.len() + sy.len()) as f64;
         let centre: [f64; 3] = std::array::from_fn(|d| sx.iter().chain(sy).map(|q| q[d]).sum::<f64>() / count);
-        // x = centre + s t minimising Σ |(I - u uᵀ)(x - from)|² over the other lines,
-        // each through its nodes outside the parent's lumen (within `r` of its axis a
-        // child's nodes sit where the contraction left them in the parent's flow, up the
-        // child at an acute angle) when two or more of them are.
+        // x = centre + s t minimising Σ |(I - u uᵀ)(x - from)|² over the other lines.
         let (mut num, mut den) = (0.0, 0.0);
-        for (k, (from, u, stretch)) in lines.iter().enumerate() {
+        for (k, (from, u, _)) in lines.iter().enumerate() {
             if k != x && k != y {
-                let (from, u) = outside_parent(stretch, centre, t, r).unwrap_or((*from, *u));
-                let (tu, e) = (dot(t, u), sub(from, centre));
-                num += dot(t, e) - tu * dot(u, e);
+                let (tu, e) = (dot(t, *u), sub(*from, centre));
+                num += dot(t, e) - tu * dot(*u, e);
                 den += 1.0 - tu * tu;
             }
         }
@@ -500,17 +494,6 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
         }
     }
     solve3(a, b)
-}
-
-/// The line of a child branch through its `stretch` nodes at least `r` from the
-/// parent's axis (through `centre` along the unit `t`): its first such node and the unit
-/// direction from there to the last. `None` with fewer than two such nodes or when they
-/// coincide.
-fn outside_parent(stretch: &[[f64; 3]], centre: [f64; 3], t: [f64; 3], r: f64) -> Option<([f64; 3], [f64; 3])> {
-    let mut outside = stretch.iter().filter(|&&q| norm(cross(sub(q, centre), t)) >= r);
-    let from = *outside.next()?;
-    let to = *outside.next_back()?;
-    Some((from, unit(sub(to, from))?))
 }
 
 /// The solution of the symmetric 3 × 3 system `a x = b` by Cramer's rule; `None` when
@@ -653,13 +636,11 @@ mod tests {
         }
     }
 
-    /// A child (from junction 0 up axis 2) that leaves its straight parent (axis 1,
-    /// radius 2) at 90° and curves towards +y from 1.5 radii on: the weak case of a line
-    /// from the child's first node outside the parent's lumen (`outside_parent`), which
-    /// puts the junction 1.7 voxels off the true meeting point (the origin) where a line
-    /// from its first node would put it 0.6 off. A line through the stretch beyond the
-    /// junction's ball (r to 3 r, the rule before both) points where the child goes and
-    /// put it 2.0 voxels off, down the parent.
+    /// A child (from junction 0 up axis 2) that leaves its straight parent (axis 1) at
+    /// 90° and curves towards +y beyond one radius: its line runs from where it leaves,
+    /// so the junction lands within a voxel of the true meeting point (the origin; 0.6
+    /// off). A line through the stretch beyond the junction's ball (r to 3 r, the rule
+    /// before) points where the child goes and put it 2.0 voxels off, down the parent.
     #[test]
     fn a_curving_child_meets_its_parent_where_it_leaves() {
         // 0 junction; 1–6 the parent; 7–11 the child.
@@ -680,35 +661,7 @@ mod tests {
             [0.0, 2.5, 5.0],
         ];
         let m = meeting_point(&g, &curves, 2.0, 0, curves[0]).unwrap();
-        assert!(norm(m) < 1.8, "junction at {m:?}");
-    }
-
-    /// A child (radius 1.5) that leaves its straight parent (axis 1, radius 4) at 45°,
-    /// whose first node the contraction left inside the parent's lumen 1.5 voxels up
-    /// the parent from the child's axis, and the junction 3 voxels up: the child's line
-    /// runs from its first node outside the lumen, so the junction lands on the true
-    /// meeting point (the origin). Through that first node it would land 2.1 voxels up
-    /// the parent.
-    #[test]
-    fn a_childs_nodes_inside_the_parents_lumen_do_not_steer_its_line() {
-        // 0 junction; 1–3 and 4–6 the parent; 7–10 the child.
-        let edges = [(0, 1), (1, 2), (2, 3), (0, 4), (4, 5), (5, 6), (0, 7), (7, 8), (8, 9), (9, 10)];
-        let g = crate::test_graph(11, edges.into_iter()).0;
-        let curves = [
-            [0.0, 3.0, 1.0],
-            [0.0, 1.0, 0.0],
-            [0.0, -2.0, 0.0],
-            [0.0, -5.0, 0.0],
-            [0.0, 6.0, 0.0],
-            [0.0, 9.0, 0.0],
-            [0.0, 12.0, 0.0],
-            [0.0, 4.0, 2.5],
-            [0.0, 5.0, 5.0],
-            [0.0, 7.0, 7.0],
-            [0.0, 9.0, 9.0],
-        ];
-        let m = meeting_point(&g, &curves, 4.0, 0, curves[0]).unwrap();
-        assert!(norm(m) < 1e-9, "junction at {m:?}");
+        assert!(norm(m) <= 1.0, "junction at {m:?}");
     }
 
     #[test]
