@@ -23,6 +23,7 @@
 
 use crate::decimate::{mean_and_largest, members_by_cluster, quotient, NodeGraph};
 use crate::grid::GridGraph;
+use crate::vec3::coarsest;
 use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
 
@@ -68,7 +69,7 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
     }
     // The box of a voxel: its side (the same number of voxels along every axis), then
     // its index along each.
-    let coarsest = spacing.iter().copied().fold(0.0, f64::max);
+    let coarsest = coarsest(spacing);
     let voxel = |i: usize| -> [i64; 3] { std::array::from_fn(|d| (grid.positions[i][d] / spacing[d]).round() as i64) };
     let box_of = |i: usize| -> [i64; 6] {
         let r = radii[centre[i] as usize];

@@ -101,7 +101,7 @@
 
 use crate::grid::Csr;
 use crate::medial::{plane_basis, Field};
-use crate::vec3::{base_cell, dot, sub, unit};
+use crate::vec3::{base_cell, coarsest, dot, sub, unit};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -170,7 +170,7 @@ fn section_area<T: Voxel>(
     // the slab's disc, both widened by a voxel, far more than any rounding of the tests
     // below: the voxels left out are those the tests turn away, and the sums add the
     // same terms in the same order.
-    let pad = spacing.iter().cloned().fold(0.0, f64::max);
+    let pad = coarsest(spacing);
     let ball = (middle.abs() + half).hypot(reach) + pad;
     let (slab_lo, slab_hi) = (middle - half - pad, middle + half + pad);
     let (mut weight, mut sum) = (0.0, [0.0; 3]);
@@ -224,7 +224,7 @@ fn section_area<T: Voxel>(
 /// guess `r0` (see the module).
 fn sizes(spacing: [f64; 3], r0: f64) -> (f64, f64, f64) {
     let c = base_cell(spacing);
-    let h = spacing.iter().cloned().fold(0.0, f64::max).max(0.5 * r0);
+    let h = coarsest(spacing).max(0.5 * r0);
     (c, h, 1.5 * r0 + 2.0 * c)
 }
 
@@ -475,7 +475,7 @@ fn chord_radius<T: Voxel>(
     quantile: f64,
 ) -> Option<f64> {
     let (c, h, reach) = sizes(spacing, r0);
-    let coarse = spacing.iter().cloned().fold(0.0, f64::max);
+    let coarse = coarsest(spacing);
     let step = STEP * c;
     let [u, v] = plane_basis(t);
     let mut interpolated = Interpolated::new(mask, spacing);

@@ -36,6 +36,7 @@ use crate::coarse::{cell_side, has_cells};
 use crate::decimate::NodeGraph;
 use crate::grid::Csr;
 use crate::medial::Field;
+use crate::vec3::coarsest;
 
 /// Shortest limit on an edge, in voxels of the coarsest spacing, when one end is in a
 /// vessel thick enough for cells and the other is not. Edges with neither end in such
@@ -53,7 +54,7 @@ const MAX_PIECES: usize = 1 << 16;
 /// vessel thick enough for cells), split into equal pieces (module doc). Old nodes keep their numbers; new ones follow, edge by edge in
 /// edge order, and take the component of their edge.
 pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph {
-    let coarsest = spacing.iter().copied().fold(0.0, f64::max);
+    let coarsest = coarsest(spacing);
     let NodeGraph { graph, mut positions, mut radii, mut component } = g;
     let old = graph.edge_list();
     let mut edges = Vec::with_capacity(old.len());

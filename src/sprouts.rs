@@ -31,7 +31,7 @@ use crate::error::Result;
 use crate::grid::Csr;
 use crate::medial::{recentre, Field};
 use crate::memory::try_filled;
-use crate::vec3::{base_cell, norm, projection, sub};
+use crate::vec3::{base_cell, coarsest, norm, projection, sub};
 use rustc_hash::FxHashSet;
 
 /// How far (base cells) a voxel's geodesic distance from the graph may exceed its own
@@ -275,7 +275,7 @@ fn sprout_round(
     let mut pos = positions.to_vec();
     // The edges near the paths' roots (on the graph's voxels), for the nearest-edge
     // search; kept up to date as edges are split and sprouts added.
-    let coarse = reach.spacing.iter().copied().fold(0.0, f64::max);
+    let coarse = coarsest(reach.spacing);
     let roots = paths.iter().map(|path| reach.centre(path[path.len() - 1]));
     let mut grid = EdgeGrid::around(roots, ROOT_SEARCH * coarse);
     for (k, &(a, b)) in edges.iter().enumerate() {

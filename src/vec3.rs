@@ -11,6 +11,11 @@ pub(crate) fn base_cell(spacing: [f64; 3]) -> f64 {
     spacing.iter().cloned().fold(f64::INFINITY, f64::min)
 }
 
+/// The coarsest voxel spacing (the largest of the three).
+pub(crate) fn coarsest(spacing: [f64; 3]) -> f64 {
+    spacing.iter().copied().fold(0.0, f64::max)
+}
+
 /// The dot product.
 pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
