@@ -18,7 +18,7 @@ use crate::medial;
 use crate::memory;
 use crate::packed::{PackedCsr, PackedNodes};
 use crate::params::{AreaReference, Params, STALL_AREA};
-use crate::precondition::{slab_axes, slab_order, NormalMatrix};
+use crate::precondition::{slab_axes, slab_order, Krylov, NormalMatrix};
 use crate::prune::prune_skeleton;
 use crate::radius::output_radii;
 use crate::resample;
@@ -153,8 +153,8 @@ pub fn contract_step_mapped(
     };
     let graph = clock.time("solve", || PackedCsr::new(std::mem::take(&mut g.graph)));
     return_free_memory();
-    let r = clock.time("solve", || m.displacement_rhs(&start));
-    let (moved, stats) = clock.time("solve", || solver::solve(&m, start, r, tol, p.cg_max_iterations));
+    let k = clock.time("solve", || Krylov::displacement(&m, start));
+    let (moved, stats) = clock.time("solve", || solver::solve(&m, k, tol, p.cg_max_iterations));
     drop(m);
     // The solve stops early when the run is asked to stop: its result is partial.
     cancel::checkpoint()?;
@@ -172,6 +172,9 @@ pub fn contract_step_mapped(
         None => moved,
     };
     let (next, map) = clock.time("decimate", || decimate_mapped(&g, &skeletal, c))?;
+    // The old graph is freed before the next stage (the cycles' area) allocates.
+    drop((g, skeletal));
+    return_free_memory();
     Ok((next, stats, map))
 }
 

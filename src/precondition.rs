@@ -481,31 +481,52 @@ impl NormalMatrix {
     /// Laplacians, which the caller can free first. Thread-independent, like
     /// [`NormalMatrix::apply_dot`].
     pub fn displacement_rhs(&self, p: &[V3]) -> Vec<V3> {
-        let bs = self.block;
         let mut r = filled(self.rows(), [0.0; 3]);
-        r.par_chunks_mut(bs).enumerate().for_each(|(b, rs)| {
-            let lo = b * bs;
-            for j in lo..lo + rs.len() {
-                let pj = p[j];
-                // Row `j`'s in-block lower part has arrived from the rows before it; each
-                // upper entry also sends row `k` its part.
-                let mut acc = rs[j - lo];
-                self.upper_entries(j).each(j, |k, m| {
-                    for c in 0..3 {
-                        acc[c] += m * (pj[c] - p[k][c]);
-                        rs[k - lo][c] += m * (p[k][c] - pj[c]);
-                    }
-                });
-                for &(k, m) in self.outer_entries(j) {
-                    let (m, pk) = (m as f64, &p[k as usize]);
-                    for c in 0..3 {
-                        acc[c] += m * (pj[c] - pk[c]);
-                    }
-                }
-                rs[j - lo] = acc;
+        r.par_chunks_mut(self.block).enumerate().for_each(|(b, rs)| self.displacement_rhs_block(p, b, rs));
+        r
+    }
+
+    /// `(D + L)⁻¹ r` of the displacement system's right-hand side `r` at the positions
+    /// `p`, rounded to `f32`: the start of [`Krylov`]. Both factors are block-local, so
+    /// each block's `r` is made and solved in a buffer of its own (the same arithmetic
+    /// as [`NormalMatrix::displacement_rhs`] then [`NormalMatrix::forward`]) and no
+    /// vector of `r` for every row is ever stored.
+    pub fn displacement_forward(&self, p: &[V3]) -> Vec<F3> {
+        let mut y = filled(self.rows(), [0.0f32; 3]);
+        y.par_chunks_mut(self.block).enumerate().for_each_init(Vec::new, |rs, (b, ys)| {
+            rs.clear();
+            rs.resize(ys.len(), [0.0; 3]);
+            self.displacement_rhs_block(p, b, rs);
+            self.forward_block(b, rs);
+            for (y, r) in ys.iter_mut().zip(rs.iter()) {
+                *y = r.map(|t| t as f32);
             }
         });
-        r
+        y
+    }
+
+    /// Block `b`'s rows of [`NormalMatrix::displacement_rhs`], into `rs` (zero).
+    fn displacement_rhs_block(&self, p: &[V3], b: usize, rs: &mut [V3]) {
+        let lo = b * self.block;
+        for j in lo..lo + rs.len() {
+            let pj = p[j];
+            // Row `j`'s in-block lower part has arrived from the rows before it; each
+            // upper entry also sends row `k` its part.
+            let mut acc = rs[j - lo];
+            self.upper_entries(j).each(j, |k, m| {
+                for c in 0..3 {
+                    acc[c] += m * (pj[c] - p[k][c]);
+                    rs[k - lo][c] += m * (p[k][c] - pj[c]);
+                }
+            });
+            for &(k, m) in self.outer_entries(j) {
+                let (m, pk) = (m as f64, &p[k as usize]);
+                for c in 0..3 {
+                    acc[c] += m * (pj[c] - pk[c]);
+                }
+            }
+            rs[j - lo] = acc;
+        }
     }
 
     /// Block symmetric Gauss–Seidel: `z = (D + U)⁻¹ D (D + L)⁻¹ r` with `L`, `D`,
@@ -547,16 +568,18 @@ impl NormalMatrix {
     /// once row `j` is solved, its in-block upper entries `M_jk = L_kj` take their part
     /// from the rows `k` after it, so each row has all of its part when its turn comes).
     pub fn forward(&self, y: &mut [V3]) {
-        let bs = self.block;
-        y.par_chunks_mut(bs).enumerate().for_each(|(b, ys)| {
-            let lo = b * bs;
-            for j in lo..lo + ys.len() {
-                let inv = 1.0 / self.diag[j] as f64;
-                let yj = ys[j - lo].map(|t| t * inv);
-                ys[j - lo] = yj;
-                scatter(self.upper_entries(j), j, ys, lo, usize::MAX, yj, -1.0);
-            }
-        });
+        y.par_chunks_mut(self.block).enumerate().for_each(|(b, ys)| self.forward_block(b, ys));
+    }
+
+    /// Block `b`'s part of [`NormalMatrix::forward`], in place.
+    fn forward_block(&self, b: usize, ys: &mut [V3]) {
+        let lo = b * self.block;
+        for j in lo..lo + ys.len() {
+            let inv = 1.0 / self.diag[j] as f64;
+            let yj = ys[j - lo].map(|t| t * inv);
+            ys[j - lo] = yj;
+            scatter(self.upper_entries(j), j, ys, lo, usize::MAX, yj, -1.0);
+        }
     }
 
     /// Eisenstat's first half, with the previous iteration's update of `x` folded in:
@@ -694,11 +717,24 @@ impl Krylov {
     /// The state at the start `x` whose residual is `r`: `y = (D + L)⁻¹ r` (solved in
     /// `r`'s place, then rounded and `r` freed before the other two are allocated), the
     /// rest zero.
+    #[cfg(test)]
     pub fn start(m: &NormalMatrix, x: Vec<V3>, mut r: Vec<V3>) -> Krylov {
-        let n = r.len();
         m.forward(&mut r);
         let y = r.par_iter().with_min_len(4096).map(|v| v.map(|t| t as f32)).collect();
         drop(r);
+        Krylov::with_y(m, x, y)
+    }
+
+    /// The state at the positions `x` of the displacement system
+    /// ([`NormalMatrix::displacement_forward`]): the same as [`Krylov::start`] with
+    /// `r = m.displacement_rhs(&x)`, without storing `r`.
+    pub fn displacement(m: &NormalMatrix, x: Vec<V3>) -> Krylov {
+        let y = m.displacement_forward(&x);
+        Krylov::with_y(m, x, y)
+    }
+
+    fn with_y(m: &NormalMatrix, x: Vec<V3>, y: Vec<F3>) -> Krylov {
+        let n = y.len();
         let zero = || filled(n, [0.0f32; 3]);
         let ring = (m.reach + 1).next_power_of_two();
         let rings = PerThread::new(move || vec![[0.0; 3]; ring]);

@@ -9,7 +9,10 @@
 //!   tolerance means the same wherever the volume sits; starting from `D = 0` is the
 //!   warm start at `P`. The right-hand side is read off the assembled `M`
 //!   ([`NormalMatrix::displacement_rhs`]), so the Laplacians are freed before the
-//!   conjugate-gradient vectors are allocated;
+//!   conjugate-gradient vectors are allocated, and it is made one Gauss–Seidel block
+//!   at a time straight into the first vector of the iteration
+//!   ([`NormalMatrix::displacement_forward`]), so it is never stored whole (24 bytes a
+//!   node less at the solve's start);
 //! - `M` itself is assembled (two-hop sparsity, ~21 entries per row on a 6-connected
 //!   grid, f32 values: [`NormalMatrix`]) and preconditioned by block symmetric
 //!   Gauss–Seidel applied in Eisenstat's form, so one iteration reads every entry of
@@ -103,17 +106,18 @@ pub struct SolveStats {
 /// Gauss–Seidel ([`NormalMatrix::sgs_dot`]).
 pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
     let m = NormalMatrix::assemble(op, None);
-    let r = m.displacement_rhs(positions);
-    solve(&m, positions.to_vec(), r, tol, max_iterations)
+    let k = Krylov::displacement(&m, positions.to_vec());
+    solve(&m, k, tol, max_iterations)
 }
 
-/// `x + D` with `M D = r`, for a start `x` whose residual is `r` (so the result solves
+/// `x + D` with `M D = r`, for the start `x` and residual `r` that `k` was made from
+/// ([`Krylov::displacement`], or [`Krylov::start`] for any `r`; the result solves
 /// `M x' = M x + r`): `D` from 0 to `|r_k|_B <= tol |r|_B` per coordinate (the
 /// residual in the preconditioner's norm, `|r|_B² = r · B r`), at most
 /// `max_iterations` iterations. `D` is added to `x` step by step, so the contraction
 /// passes its positions and no displacement vector is stored.
-pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
-    assert!(r.len() == m.rows() && x.len() == m.rows(), "one start and one residual per row of M");
+pub fn solve(m: &NormalMatrix, mut k: Krylov, tol: f64, max_iterations: usize) -> (Vec<V3>, SolveStats) {
+    assert!(k.y.len() == m.rows() && k.x.len() == m.rows(), "one start and one residual per row of M");
     // Preconditioned CG with block symmetric Gauss–Seidel `B r = (D + U)⁻¹ D (D + L)⁻¹ r`
     // in Eisenstat's form: the search direction `s` is kept with `ŝ = (D + U) s`, so
     // `M s = ŝ + (L + E) s` needs no product of its own: every iteration reads the stored
@@ -124,7 +128,6 @@ pub fn solve(m: &NormalMatrix, x: Vec<V3>, r: Vec<V3>, tol: f64, max_iterations:
     // `y - step (D + L)⁻¹ M s` once the step is known; `r · B r = y · D y` is both the
     // CG scalar and the stop test, so neither `r` nor `M s` is stored. The update of `x`
     // waits for the next `backward` pass instead of a pass of its own.
-    let mut k = Krylov::start(m, x, r);
     let mut rz = weighted_norms(&m.diag, &k.y);
     let rz0 = rz;
     let mut active = rz0.map(|x| x > 0.0);
@@ -414,6 +417,23 @@ mod tests {
         }
     }
 
+    #[test]
+    fn the_start_from_positions_is_the_start_from_their_right_hand_side() {
+        // `Krylov::displacement` makes and solves each block's right-hand side in a
+        // buffer of its own: the same `y`, bit for bit, as the whole `r` then `forward`.
+        for pb in [patch(), block(4, 5, 6)] {
+            let n = pb.p.len();
+            for bs in [1, 7, n] {
+                let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
+                let fused = Krylov::displacement(&m, pb.p.to_vec());
+                let whole = Krylov::start(&m, pb.p.to_vec(), m.displacement_rhs(pb.p));
+                let bits = |k: &Krylov| k.y.iter().flatten().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&fused), bits(&whole), "block {bs}");
+                assert!(fused.y.iter().flatten().any(|&v| v != 0.0));
+            }
+        }
+    }
+
     /// Deterministic pseudo-random vectors (xorshift64*), entries in [-1, 1).
     fn noise(n: usize, seed: u64) -> Vec<V3> {
         let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
@@ -494,7 +514,7 @@ mod tests {
         for bs in [b.len(), 64, 25] {
             let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
             let (want, k) = explicit_pcg(&m, &b, 1e-6, 500);
-            let (got, stats) = solve(&m, vec![[0.0; 3]; b.len()], b.clone(), 1e-6, 500);
+            let (got, stats) = solve(&m, Krylov::start(&m, vec![[0.0; 3]; b.len()], b.clone()), 1e-6, 500);
             assert!(stats.converged);
             assert!(stats.iterations.abs_diff(k) <= 1, "block {bs}: {} vs {k}", stats.iterations);
             assert!(max_diff(&got, &want) < 1e-5, "block {bs}: {}", max_diff(&got, &want));
@@ -516,7 +536,7 @@ mod tests {
         let b = pb.rhs();
         // Three of the solver's vectors are f32: it reaches a relative residual of
         // 1e-6, not f64's.
-        let (got, stats) = solve(&m, vec![[0.0; 3]; n], b.clone(), 1e-6, 1000);
+        let (got, stats) = solve(&m, Krylov::start(&m, vec![[0.0; 3]; n], b.clone()), 1e-6, 1000);
         assert!(stats.converged && stats.iterations < n);
         let exact = gauss(&dense_m, &b);
         let scale = exact.iter().flatten().fold(0f64, |a, v| a.max(v.abs()));
@@ -560,7 +580,9 @@ mod tests {
             pool.install(|| match block {
                 None => contract(&pb.op(), pb.p, 1e-8, 500),
                 Some(bs) => {
-                    solve(&NormalMatrix::assemble_in_blocks(&pb.op(), bs, None), pb.p.to_vec(), pb.rhs(), 1e-8, 500)
+                    let m = NormalMatrix::assemble_in_blocks(&pb.op(), bs, None);
+                    let k = Krylov::start(&m, pb.p.to_vec(), pb.rhs());
+                    solve(&m, k, 1e-8, 500)
                 }
             })
         };
