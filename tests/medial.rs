@@ -168,7 +168,7 @@ fn the_stage_moves_nodes_but_keeps_the_graph() {
 }
 
 /// On noise (random blobs) and random paths and junctions, a node that moves lands on
-/// a vessel voxel and moves at most `CAP` radii (one base cell at least), unless it is
+/// a vessel voxel and moves at most `CAP` radii (`MIN_CAP` base cells at least), unless it is
 /// a path node put back between its junction and its other neighbour (the unfolding):
 /// then it sits at their midpoint.
 #[test]
@@ -223,7 +223,8 @@ fn moves_stay_on_the_mask_and_within_the_cap() {
             if unfolded(i) {
                 unfolds += 1;
             } else {
-                assert!(d <= (vesselflow::medial::CAP * r).max(0.7) + 1e-9, "{p:?} moved {d} with radius {r}");
+                let cap = (vesselflow::medial::CAP * r).max(vesselflow::medial::MIN_CAP * 0.7);
+                assert!(d <= cap + 1e-9, "{p:?} moved {d} with radius {r}");
             }
         }
     }
