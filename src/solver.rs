@@ -111,7 +111,7 @@ pub fn contract(op: &NormalOperator<'_>, positions: &[V3], tol: f64, max_iterati
 }
 
 /// `x + D` with `M D = r`, for the start `x` and residual `r` that `k` was made from
-/// ([`Krylov::displacement`], or [`Krylov::start`] for any `r`; the result solves
+/// ([`Krylov::displacement`]; the tests' `Krylov::start` takes any `r`; the result solves
 /// `M x' = M x + r`): `D` from 0 to `|r_k|_B <= tol |r|_B` per coordinate (the
 /// residual in the preconditioner's norm, `|r|_B² = r · B r`), at most
 /// `max_iterations` iterations. `D` is added to `x` step by step, so the contraction
