@@ -85,6 +85,29 @@ impl EdgeGrid {
     }
 }
 
+/// The edge nearest `p` among edges `0..n` by a scan of every one (ties to the lower
+/// index, as [`EdgeGrid::nearest`]), with the parameter of `p`'s projection on it;
+/// `segment(k)` gives edge `k`'s two ends. For a point farther than a grid's side from
+/// every edge.
+pub fn nearest_by_scan(p: [f64; 3], n: usize, segment: impl Fn(usize) -> ([f64; 3], [f64; 3])) -> Option<(usize, f64)> {
+    nearest_with_distance(p, n, segment).map(|(_, k, t)| (k, t))
+}
+
+/// [`nearest_by_scan`] with the distance first: `(d, k, t)`.
+fn nearest_with_distance(
+    p: [f64; 3],
+    n: usize,
+    segment: impl Fn(usize) -> ([f64; 3], [f64; 3]),
+) -> Option<(f64, usize, f64)> {
+    (0..n)
+        .map(|k| {
+            let (a, b) = segment(k);
+            let (t, d) = projection(p, a, b);
+            (d, k, t)
+        })
+        .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,16 +144,9 @@ mod tests {
         }
         let (mut found, mut none) = (0, 0);
         for &q in &queries {
-            let scan = edges
-                .iter()
-                .enumerate()
-                .map(|(k, &[a, b])| {
-                    let (t, d) = projection(q, points[a], points[b]);
-                    (d, k, t)
-                })
-                .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)))
-                .unwrap();
-            let got = grid.nearest(q, |k| (points[edges[k][0]], points[edges[k][1]]));
+            let segment = |k: usize| (points[edges[k][0]], points[edges[k][1]]);
+            let scan = nearest_with_distance(q, edges.len(), segment).unwrap();
+            let got = grid.nearest(q, segment);
             if scan.0 <= side {
                 assert_eq!(got, Some((scan.1, scan.2)), "query {q:?}");
                 found += 1;

@@ -25,13 +25,13 @@
 //! [`NODE_STEP`] cells and then centred like every other node
 //! ([`crate::medial::recentre`]).
 
-use crate::edge_grid::EdgeGrid;
+use crate::edge_grid::{nearest_by_scan, EdgeGrid};
 use crate::ends::edge_voxels;
 use crate::error::Result;
 use crate::grid::Csr;
 use crate::medial::{recentre, Field};
 use crate::memory::try_filled;
-use crate::vec3::{base_cell, coarsest, norm, projection, sub};
+use crate::vec3::{base_cell, coarsest, norm, sub};
 use rustc_hash::FxHashSet;
 
 /// How far (base cells) a voxel's geodesic distance from the graph may exceed its own
@@ -295,8 +295,10 @@ fn sprout_round(
         };
         // The edge nearest the root, split at the root's projection onto it.
         let root = *path.last().unwrap();
-        let near = grid.nearest(reach.centre(root), |k| (pos[edges[k].0 as usize], pos[edges[k].1 as usize]));
-        let Some((k, t)) = near.or_else(|| nearest_edge(&edges, &pos, reach.centre(root))) else { continue };
+        let segment = |k: usize| (pos[edges[k].0 as usize], pos[edges[k].1 as usize]);
+        let p = reach.centre(root);
+        let near = grid.nearest(p, segment).or_else(|| nearest_by_scan(p, edges.len(), segment));
+        let Some((k, t)) = near else { continue };
         let (a, b) = edges[k];
         let split: [f64; 3] =
             std::array::from_fn(|d| pos[a as usize][d] + t * (pos[b as usize][d] - pos[a as usize][d]));
@@ -344,20 +346,6 @@ fn sprout_round(
     edges.sort_unstable();
     edges.dedup();
     Ok((Csr::from_sorted_edges(pos.len(), &edges), pos, sprouts))
-}
-
-/// The edge (index into `edges`) nearest `p` and the parameter of `p`'s projection on it,
-/// by a scan of every edge (for a root farther than the grid's search from every edge).
-fn nearest_edge(edges: &[(u32, u32)], pos: &[[f64; 3]], p: [f64; 3]) -> Option<(usize, f64)> {
-    edges
-        .iter()
-        .enumerate()
-        .map(|(k, &(a, b))| {
-            let (t, d) = projection(p, pos[a as usize], pos[b as usize]);
-            (d, k, t)
-        })
-        .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)))
-        .map(|(_, k, t)| (k, t))
 }
 
 #[cfg(test)]
