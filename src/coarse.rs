@@ -12,7 +12,8 @@
 //! every axis, at least one: [`cell_side`]) of a box grid of that side. A cell is a connected set of voxels of one box, joined by grid edges whose
 //! two ends climb to centres less than the smaller radius apart: voxels of two
 //! vessels that touch climb to their own vessel's ridge, so no cell spans the contact.
-//! Vessels of radius under `2 / coarse_cell` voxels keep one node per voxel.
+//! Vessels of radius under `2 / coarse_cell` voxels, and over [`MAX_CELL_RADIUS`], keep one
+//! node per voxel.
 //!
 //! A cell becomes a node at its voxels' centroid (the member voxel nearest to it when
 //! the centroid's voxel is not a member: a bent cell), with the largest EDT of its
@@ -136,12 +137,25 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
     (next, map)
 }
 
+/// The thickest vessel that gets cells: its radius in voxels of the coarsest spacing.
+/// Thicker vessels keep one node per voxel, as thin ones do. Cells kept the fidelity
+/// benchmark's figures within their spread on vessels up to this radius (the synthetic
+/// families; the 256³ bed, radii up to 7.9 voxels) and went wrong on thicker ones: on
+/// `aorta_ct_03mm` (radii 9-25 voxels) GFNR over four orders of its axes was
+/// 0.090-0.236 with cells against 0.078-0.104 without, and smaller cells (sides capped
+/// at 3 voxels) did worse, 0.157-0.185 (README, "Where we differ", 13).
+pub const MAX_CELL_RADIUS: f64 = 8.0;
+
 /// The side of the cells of a vessel of radius `r`, in voxels along every axis:
-/// `cell * r` over the coarsest voxel spacing, at least one voxel. The same number of
-/// voxels per axis keeps the coarse graph a scaled-down grid graph (the Laplacians are
-/// row-normalised, so the contraction sees hops, not lengths); cells of equal physical
-/// side on an anisotropic grid would make an elongated block look short to it.
+/// `cell * r` over the coarsest voxel spacing, at least one voxel; one voxel above
+/// [`MAX_CELL_RADIUS`]. The same number of voxels per axis keeps the coarse graph a
+/// scaled-down grid graph (the Laplacians are row-normalised, so the contraction sees
+/// hops, not lengths); cells of equal physical side on an anisotropic grid would make an
+/// elongated block look short to it.
 pub fn cell_side(cell: f64, r: f64, coarsest: f64) -> i64 {
+    if r / coarsest > MAX_CELL_RADIUS {
+        return 1;
+    }
     ((cell * r / coarsest).floor() as i64).max(1)
 }
 

@@ -98,9 +98,10 @@ pub struct Params {
     pub radius_correction: f64,
     /// Start the contraction from cells of voxels this many vessel radii wide rather
     /// than from one node per voxel ([`crate::coarse`]): cells never span two vessels,
-    /// and vessels of radius under `2 / coarse_cell` voxels keep one node per voxel;
-    /// long edges are then split back to the cells' spacing ([`crate::resample`]).
-    /// 0 turns it off (as in the paper).
+    /// and vessels of radius under `2 / coarse_cell` voxels or over
+    /// [`crate::coarse::MAX_CELL_RADIUS`] keep one node per voxel; long edges are then
+    /// split back to the cells' spacing ([`crate::resample`]). 0 turns it off (one node
+    /// per voxel everywhere, as in the paper).
     pub coarse_cell: f64,
     /// Medial affinity weighting.
     pub medial_weight: MedialWeight,

@@ -4,7 +4,7 @@
 
 use ndarray::Array3;
 use petgraph::unionfind::UnionFind;
-use vesselflow::coarse::coarsen;
+use vesselflow::coarse::{cell_side, coarsen, has_cells, MAX_CELL_RADIUS};
 use vesselflow::decimate::NodeGraph;
 use vesselflow::grid::{self, GridGraph};
 use vesselflow::shapes::{self, capsules, segment_distance, Capsule};
@@ -113,9 +113,32 @@ fn a_mask_too_thin_for_any_cell_gives_the_graph_of_the_grid_start() {
     assert_eq!((on.positions, on.edges, on.radii), (off.positions, off.edges, off.radii));
 }
 
+/// Above `MAX_CELL_RADIUS` (8 voxels) a vessel keeps a node per voxel, as a thin one
+/// does: cells in vessels that thick went wrong on the real aortas (README, item 13).
+#[test]
+fn vessels_thicker_than_the_largest_cell_radius_keep_one_node_per_voxel() {
+    assert_eq!(MAX_CELL_RADIUS, 8.0);
+    assert_eq!(cell_side(CELL, 8.0, 1.0), 5);
+    assert_eq!(cell_side(CELL, 8.01, 1.0), 1);
+    assert!(!has_cells(CELL, 9.0, 1.0));
+    // In voxels of the coarsest spacing: 9 units at spacing 2 are 4.5 voxels.
+    assert_eq!(cell_side(CELL, 9.0, 2.0), 3);
+    // A tube of radius 10 keeps most of its voxels as nodes (only the voxels of its
+    // ends, where the transform is under 8, share cells); one of 7.5 has cells.
+    let (g, c, _) = coarse(&shapes::cylinder([60, 25, 25], 10.0), CELL);
+    assert!(
+        c.positions.len() * 10 > 8 * g.positions.len(),
+        "{} cells for {} voxels",
+        c.positions.len(),
+        g.positions.len()
+    );
+    let (g, c, _) = coarse(&shapes::cylinder([60, 25, 25], 7.5), CELL);
+    assert!(c.positions.len() * 10 < g.positions.len(), "{} cells for {} voxels", c.positions.len(), g.positions.len());
+}
+
 #[test]
 fn a_thick_tube_has_far_fewer_nodes_each_inside_its_cell() {
-    let mask = shapes::cylinder([60, 25, 25], 8.0);
+    let mask = shapes::cylinder([60, 25, 25], 7.0);
     let (g, c, map) = coarse(&mask, CELL);
     let (n, m) = (g.positions.len(), c.positions.len());
     assert!(m * 10 < n, "{m} cells for {n} voxels");

@@ -45,8 +45,9 @@ class Skeletonizer:
     coarse_cell : float in [0, 4]
         Start the contraction from cells of voxels this many vessel radii wide instead
         of one node per voxel (never across two touching vessels; vessels of radius under
-        ``2 / coarse_cell`` voxels keep a node per voxel); afterwards edges longer than
-        the larger of a cell side and 2 voxels are split. 0 turns it off (the paper).
+        ``2 / coarse_cell`` voxels or over 8 voxels keep a node per voxel); afterwards
+        edges longer than the larger of a cell side and 2 voxels are split. 0 turns it
+        off (one node per voxel everywhere, the paper).
     medial_weight : {"radius", "difference"}
         Medial Laplacian weights: ``r_j / sum r_k`` (the authors' code) or
         ``|r_i - r_j| / sum |r_i - r_k|`` (the paper's eq. 3).
