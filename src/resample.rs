@@ -63,7 +63,8 @@ pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph
         let (ra, rb) = (radii[a as usize], radii[b as usize]);
         let length = (0..3).map(|d| (q[d] - p[d]).powi(2)).sum::<f64>().sqrt();
         let longest = cell_side(cell, ra.min(rb), coarsest).max(MIN_SIDE) as f64 * coarsest;
-        // Neither end in a vessel thick enough for cells: left as without a coarse start.
+        // Neither end in a vessel with cells (too thin or too thick, see `coarse`): left as
+        // without a coarse start.
         let thin = !(has_cells(cell, ra, coarsest) || has_cells(cell, rb, coarsest));
         let pieces = if thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
         let mut prev = a;

@@ -123,8 +123,9 @@ fn vessels_thicker_than_the_largest_cell_radius_keep_one_node_per_voxel() {
     assert!(!has_cells(CELL, 9.0, 1.0));
     // In voxels of the coarsest spacing: 9 units at spacing 2 are 4.5 voxels.
     assert_eq!(cell_side(CELL, 9.0, 2.0), 3);
-    // A tube of radius 10 keeps most of its voxels as nodes (only the voxels of its
-    // ends, where the transform is under 8, share cells); one of 7.5 has cells.
+    // A tube of radius 10 keeps most of its voxels as nodes (a voxel whose climb stops
+    // at a ridge point under 8, as near the tube's flat ends, may share a cell); one of
+    // 7.5 is cut into cells.
     let (g, c, _) = coarse(&shapes::cylinder([60, 25, 25], 10.0), CELL);
     assert!(
         c.positions.len() * 10 > 8 * g.positions.len(),
