@@ -514,12 +514,14 @@ def evaluate(
 
 def reordered_run(case: Case, options: dict[str, Any]) -> VesselGraph:
     """vesselflow on ``case``'s mask with its axes in the order :data:`REORDER`, the
-    graph's positions put back in the mask's own axis order."""
+    graph's positions put back in the mask's own axis order, and with the mask's spacing
+    (without it an anisotropic case would be scored as if its voxels were cubes)."""
     axes = list(REORDER)
     mask = np.ascontiguousarray(case.mask.transpose(axes))
     graph = compare.run("vesselflow", mask, np.asarray(case.spacing)[axes], **options)
-    back = VesselGraph(graph.positions[:, np.argsort(axes)], graph.radii, graph.edges)
-    back.info.update(graph.info)
+    back = VesselGraph(
+        graph.positions[:, np.argsort(axes)], graph.radii, graph.edges, case.spacing, graph.info
+    )
     return back
 
 

@@ -479,7 +479,9 @@ impl NormalMatrix {
     /// stored off-diagonal entries alone, translation-invariant (differences of
     /// positions at most two hops apart, never absolute coordinates), and without the
     /// Laplacians, which the caller can free first. Thread-independent, like
-    /// [`NormalMatrix::apply_dot`].
+    /// [`NormalMatrix::apply_dot`]. The solve never stores it: it starts from
+    /// [`NormalMatrix::displacement_forward`], which makes it block by block, and this
+    /// whole vector is the reference the tests check that against.
     pub fn displacement_rhs(&self, p: &[V3]) -> Vec<V3> {
         let mut r = filled(self.rows(), [0.0; 3]);
         r.par_chunks_mut(self.block).enumerate().for_each(|(b, rs)| self.displacement_rhs_block(p, b, rs));
