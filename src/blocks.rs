@@ -73,6 +73,9 @@ pub struct NodeRecord {
     pub count: u64,
     /// Largest output radius of the voxels' nodes.
     pub radius: f64,
+    /// Largest radius the voxels' nodes split long edges by, with a coarse start
+    /// ([`crate::resample`]; 0 without one or for nodes the split added).
+    pub split_radius: f64,
 }
 
 /// What the block phase returns for one block.
@@ -197,11 +200,12 @@ impl Skeletonizer {
             let node = fate.node[id];
             let p = skeleton.positions[node as usize];
             if cells.last().is_none_or(|s| (s.component, s.cell, s.node) != (component, cell, node)) {
-                cells.push(NodeRecord { component, cell, node, position: p, count: 0, radius: 0.0 });
+                cells.push(NodeRecord { component, cell, node, position: p, count: 0, radius: 0.0, split_radius: 0.0 });
             }
             let s = cells.last_mut().expect("pushed above");
             s.count += 1;
             s.radius = s.radius.max(skeleton.radii[node as usize]);
+            s.split_radius = s.split_radius.max(fate.split_radius.get(node as usize).copied().unwrap_or(0.0));
             record[id] = (cells.len() - 1) as u32;
         }
 
@@ -389,6 +393,7 @@ impl Skeletonizer {
         let mut offsets: Vec<[f64; 3]> = vec![];
         let mut counts: Vec<u64> = vec![];
         let mut radii: Vec<f64> = vec![];
+        let mut split_radii: Vec<f64> = vec![];
         let mut component: Vec<u32> = vec![];
         let mut blocks_of_node: Vec<(usize, bool)> = vec![];
         let mut last = None;
@@ -400,6 +405,7 @@ impl Skeletonizer {
                 offsets.push([0.0; 3]);
                 counts.push(0);
                 radii.push(0.0);
+                split_radii.push(0.0);
                 component.push(global[r]);
                 blocks_of_node.push((block_of[r], false));
             }
@@ -409,6 +415,7 @@ impl Skeletonizer {
             }
             counts[k] += s.count;
             radii[k] = radii[k].max(s.radius);
+            split_radii[k] = split_radii[k].max(s.split_radius);
             if blocks_of_node[k].0 != block_of[r] {
                 blocks_of_node[k].1 = true;
             }
@@ -475,17 +482,21 @@ impl Skeletonizer {
             let keep: Vec<bool> = moved.iter().map(|m| !m).collect();
             let (next, map) = decimate_mapped(&g, &keep, c)?;
             let mut next_seam = vec![false; next.positions.len()];
+            let mut next_split = vec![0.0f64; next.positions.len()];
             for (i, &m) in map.iter().enumerate() {
                 next_seam[m as usize] |= seam[i];
+                next_split[m as usize] = next_split[m as usize].max(split_radii[i]);
             }
             seam = next_seam;
+            split_radii = next_split;
             g = next;
         }
 
-        // With a coarse start, edges longer than its cells are split as in a single run
-        // ([`crate::resample`]; the merge has no mask, so the new nodes stay on the chords).
+        // With a coarse start, edges longer than its cells are split as in a single run,
+        // by the radii the blocks split with ([`crate::resample`]; the merge has no mask,
+        // so the new nodes stay on the chords).
         if p.coarse_cell > 0.0 {
-            g = split_long_edges(g, p.coarse_cell, spacing);
+            g = split_long_edges(g, &split_radii, p.coarse_cell, spacing);
             seam.resize(g.positions.len(), false);
         }
 

@@ -7,12 +7,15 @@ use crate::volume::Voxel;
 use ndarray::ArrayView3;
 
 /// Where every foreground voxel of a run went: its node now (voxels in C order), its
-/// mask component, and the initial grid graph.
+/// mask component, and the initial grid graph; with a coarse start, each node's radius
+/// as the split of long edges reads it ([`crate::resample`]: its cluster's largest
+/// transform value, which a chunked run's merge cannot rebuild from output radii).
 #[derive(Debug, Clone)]
 pub struct VoxelFate {
     pub node: Vec<u32>,
     pub component: Vec<u32>,
     pub grid: Csr,
+    pub split_radius: Vec<f64>,
 }
 
 impl VoxelFate {
@@ -21,6 +24,7 @@ impl VoxelFate {
             node: (0..grid.positions.len() as u32).collect(),
             component: grid.component.clone(),
             grid: grid.graph.clone(),
+            split_radius: vec![],
         }
     }
 }

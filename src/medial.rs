@@ -15,9 +15,11 @@
 //!   leaves: 32 % of the tuning forests' true junctions had no graph junction within
 //!   σ = 2 voxels with it, 26 % now, thinning 19 %): when two branches run nearly straight through
 //!   ([`STRAIGHT`]) they are the parent vessel, one line, and the junction is the point
-//!   on the parent's axis nearest (least squares) to the other branches' lines;
+//!   on the parent's axis nearest (least squares) to the other branches' lines (a thin
+//!   child's line from its first node outside the parent's tube, [`THIN_CHILD`]);
 //!   otherwise (a fork) the point nearest to every branch's line. It moves at most
-//!   [`JUNCTION_CAP`] radii. The ridge alone would not do: where a thin vessel leaves a
+//!   [`JUNCTION_CAP`] radii (on a parent, of the parent's radius over the sine of the
+//!   child's angle when that is larger). The ridge alone would not do: where a thin vessel leaves a
 //!   thick one the transform is largest on the thick one's axis, so its maximum (or
 //!   plateau) pulls the junction into the parent; and a point fitted to all lines
 //!   alike lands up the child where it leaves at an acute angle;
@@ -62,8 +64,19 @@ pub const CAP: f64 = 0.6;
 /// Largest move of a junction, as a fraction of its radius (on its parent's axis or
 /// not: a cap of [`CAP`] for forks alone was worse on the tuning set): where a thin vessel
 /// leaves at an acute angle the junction sits up to a parent's radius or more off
-/// the meeting point (chosen on the tuning set: 0.6 and 2.0 were worse).
+/// the meeting point (chosen on the tuning set: 0.6 and 2.0 were worse). On a parent
+/// the radius is the larger of the junction's and the parent's over the sine of the
+/// most acute child's angle (at most doubled): the contraction can leave the junction
+/// anywhere in the parent's tube, and up a child leaving at θ by the parent's radius
+/// over sin θ (a coarse start's junction sits on the child, whose radius held it back).
 pub const JUNCTION_CAP: f64 = 1.2;
+
+/// A child branch of a junction on a parent vessel is thin when its nodes' mean radius
+/// is at most this fraction of the parent's: its nodes inside the parent's tube sit on
+/// the parent's slope of the distance transform, not on its own axis, and its line runs
+/// from the first node outside (a radius-2 child leaving a radius-5 parent at 45°: the
+/// junction 2.1 voxels from where the centrelines meet with a coarse start, 0.4 so).
+pub const THIN_CHILD: f64 = 0.5;
 
 /// Two branches of a junction whose outward directions have a dot product below
 /// `-STRAIGHT` (within about 26° of opposite) are a parent vessel running through it
@@ -369,10 +382,10 @@ pub fn recentre(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field) -
                 return curves[i];
             }
             let p = positions[i];
-            let m = meeting_point(g, &curves, radii[i].max(c), i, p);
-            let Some(m) = m else { return p };
+            let m = meeting_point(g, &curves, radii, radii[i].max(c), i, p);
+            let Some((m, wall)) = m else { return p };
             let d = sub(m, p);
-            let (n, cap) = (norm(d), (JUNCTION_CAP * radii[i]).max(MIN_CAP * c));
+            let (n, cap) = (norm(d), (JUNCTION_CAP * radii[i].max(wall)).max(MIN_CAP * c));
             let target = if n > cap { std::array::from_fn(|k| p[k] + d[k] * cap / n) } else { m };
             if field.inside(target) {
                 target
@@ -409,23 +422,36 @@ fn unfold(g: &Csr, moved: &[[f64; 3]], field: &Field) -> Vec<[f64; 3]> {
         .collect()
 }
 
-/// A junction's branch: a point of its line, its outward unit direction, its stretch.
-type Branch = ([f64; 3], [f64; 3], Vec<[f64; 3]>);
+/// A junction's branch: a point of its line, its outward unit direction, its stretch
+/// (node indices).
+type Branch = ([f64; 3], [f64; 3], Vec<usize>);
 
-/// Where junction `j`'s branches meet. Each branch's line runs through its nodes (at
+/// Where junction `j`'s branches meet, and the radius that bounds the move there (0 for
+/// a fork: the junction's own). `r` is the junction's radius, raised to its neighbours'
+/// largest (a junction left on a thin child would otherwise see only a stub of its
+/// parent). Each branch's line runs through its nodes (at
 /// `curves`) within `REACH r` of `p`, from the first one on, walked along nodes of
 /// degree 2 (the first node alone, on the line from `p`, when it is the only one). When two
 /// branches are nearly opposite ([`STRAIGHT`]) they are the parent vessel running
 /// through: one line through both stretches (its direction from the far end of one
 /// to the far end of the other), and the junction is the point on it nearest, in
-/// least squares, to the other branches' lines. Otherwise (a fork with no straight
+/// least squares, to the other branches' lines (a [`THIN_CHILD`]'s from its first node
+/// outside the parent's tube). Otherwise (a fork with no straight
 /// parent) the point nearest, in least squares, to every branch's line. `None` when
 /// the lines are (nearly) parallel.
-fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) -> Option<[f64; 3]> {
+fn meeting_point(
+    g: &Csr,
+    curves: &[[f64; 3]],
+    radii: &[f64],
+    r: f64,
+    j: usize,
+    p: [f64; 3],
+) -> Option<([f64; 3], f64)> {
     let mut lines: Vec<Branch> = vec![];
+    let r = g.neighbours(j).iter().fold(r, |m, &k| m.max(radii[k as usize]));
     for &first in g.neighbours(j) {
         let (mut prev, mut cur) = (j, first as usize);
-        let mut stretch: Vec<[f64; 3]> = vec![];
+        let mut stretch: Vec<usize> = vec![];
         // Each step moves one node along the branch: capped by the node count.
         for _ in 0..g.nodes() {
             let q = curves[cur];
@@ -433,7 +459,7 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
             if d > REACH * r {
                 break;
             }
-            stretch.push(q);
+            stretch.push(cur);
             let nb = g.neighbours(cur);
             if nb.len() != 2 {
                 break;
@@ -441,10 +467,10 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
             let next = if nb[0] as usize == prev { nb[1] } else { nb[0] } as usize;
             (prev, cur) = (cur, next);
         }
-        if stretch.len() < 2 {
-            stretch = vec![p, curves[first as usize]];
-        }
-        let (from, to) = (stretch[0], stretch[stretch.len() - 1]);
+        let (from, to) = match stretch[..] {
+            [a, .., b] => (curves[a], curves[b]),
+            _ => (p, curves[first as usize]),
+        };
         let t = sub(to, from);
         let n = norm(t);
         if n > 0.0 {
@@ -464,25 +490,52 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
     }
     let on_parent = parent.and_then(|(x, y)| {
         let (sx, sy) = (&lines[x].2, &lines[y].2);
-        let t = sub(sy[sy.len() - 1], sx[sx.len() - 1]);
+        let ends = |s: &[usize]| s.last().map_or(p, |&i| curves[i]);
+        let t = sub(ends(sy), ends(sx));
         let n = norm(t);
         if n == 0.0 {
             return None;
         }
         let t = t.map(|v| v / n);
-        let count = (sx.len() + sy.len()) as f64;
-        let centre: [f64; 3] = std::array::from_fn(|d| sx.iter().chain(sy).map(|q| q[d]).sum::<f64>() / count);
+        let on_line: Vec<usize> = sx.iter().chain(sy).copied().collect();
+        let count = on_line.len().max(1) as f64;
+        let centre: [f64; 3] = if on_line.is_empty() {
+            p
+        } else {
+            std::array::from_fn(|d| on_line.iter().map(|&i| curves[i][d]).sum::<f64>() / count)
+        };
+        let wall = on_line.iter().map(|&i| radii[i]).sum::<f64>() / count;
+        // A child's nodes inside the parent's tube sit on the parent's slope, not on
+        // the child's axis: its line runs from the first node outside (when two are).
+        let outside = |i: &usize| {
+            let e = sub(curves[*i], centre);
+            let along = dot(e, t);
+            dot(e, e) - along * along >= wall * wall
+        };
         // x = centre + s t minimising Σ |(I - u uᵀ)(x - from)|² over the other lines.
-        let (mut num, mut den) = (0.0, 0.0);
-        for (k, (from, u, _)) in lines.iter().enumerate() {
+        let (mut num, mut den, mut sin) = (0.0, 0.0, 1.0f64);
+        for (k, (from, u, stretch)) in lines.iter().enumerate() {
             if k != x && k != y {
-                let (tu, e) = (dot(t, *u), sub(*from, centre));
-                num += dot(t, e) - tu * dot(*u, e);
+                // Only a thin child's nodes are trimmed: one as thick as its parent
+                // shares the tube it leaves by, and its first nodes show where it turns.
+                let thin = stretch.iter().map(|&i| radii[i]).sum::<f64>() <= THIN_CHILD * wall * stretch.len() as f64;
+                let beyond: Vec<usize> =
+                    if thin { stretch.iter().skip_while(|i| !outside(i)).copied().collect() } else { vec![] };
+                let (from, u) = match beyond[..] {
+                    [a, .., b] if norm(sub(curves[b], curves[a])) > 0.0 => {
+                        let d = sub(curves[b], curves[a]);
+                        (curves[a], d.map(|v| v / norm(d)))
+                    }
+                    _ => (*from, *u),
+                };
+                let (tu, e) = (dot(t, u), sub(from, centre));
+                num += dot(t, e) - tu * dot(u, e);
                 den += 1.0 - tu * tu;
+                sin = sin.min((1.0 - tu * tu).max(0.0).sqrt());
             }
         }
         // Children (nearly) along the parent meet it nowhere in particular.
-        (den > 1e-6).then(|| std::array::from_fn(|d| centre[d] + num / den * t[d]))
+        (den > 1e-6).then(|| (std::array::from_fn(|d| centre[d] + num / den * t[d]), wall / sin.max(0.5)))
     });
     if on_parent.is_some() {
         return on_parent;
@@ -498,7 +551,7 @@ fn meeting_point(g: &Csr, curves: &[[f64; 3]], r: f64, j: usize, p: [f64; 3]) ->
             }
         }
     }
-    solve3(a, b)
+    solve3(a, b).map(|m| (m, 0.0))
 }
 
 /// The solution of the symmetric 3 × 3 system `a x = b` by Cramer's rule; `None` when
@@ -665,7 +718,7 @@ mod tests {
             [0.0, 1.0, 4.0],
             [0.0, 2.5, 5.0],
         ];
-        let m = meeting_point(&g, &curves, 2.0, 0, curves[0]).unwrap();
+        let m = meeting_point(&g, &curves, &[2.0; 12], 2.0, 0, curves[0]).unwrap().0;
         assert!(norm(m) <= 1.0, "junction at {m:?}");
     }
 

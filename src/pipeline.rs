@@ -416,7 +416,13 @@ impl Skeletonizer {
         // ones are numbered from `split`.
         let split = g.positions.len();
         if p.coarse_cell > 0.0 {
-            g = clock.time("resample", || resample::split_long_edges(std::mem::take(&mut g), p.coarse_cell, spacing));
+            let decide = g.radii.clone();
+            g = clock.time("resample", || {
+                resample::split_long_edges(std::mem::take(&mut g), &decide, p.coarse_cell, spacing)
+            });
+            if let Some(f) = &mut fate {
+                f.split_radius = decide;
+            }
         }
 
         // The distance transform, for the medial stage and the routing of edges.

@@ -7,8 +7,9 @@
 //! which collapses the short cycles left between consecutive nodes, merges some of
 //! those: a radius-4 cylinder kept 16 nodes over 40 voxels, a radius-4 torus 48 over a
 //! circumference of 126. After the refinement every edge longer than the cell side at
-//! the smaller radius of its two ends, and than 2 voxels (so that chunked runs, whose
-//! merged nodes carry the slightly smaller output radii, split alike), is split into
+//! the smaller radius of its two ends, and than 2 voxels, with either end in a vessel
+//! that has cells (a chunked run's merge decides by the radii its blocks split with), is
+//! split into
 //! equal pieces no longer than that, by new degree-2 nodes on the chord with linearly
 //! interpolated radii (which bound their moves in the medial stage). The medial stage
 //! then moves them, like every other node, onto the ridge of the distance transform,
@@ -50,10 +51,12 @@ const MAX_PIECES: usize = 1 << 16;
 
 /// `g` with every edge longer than the coarse cell side (`cell_side(cell, r, coarsest)`
 /// voxels of the coarsest spacing, `r` the smaller radius of its ends, at least
-/// [`MIN_SIDE`] voxels), with a side of 2 voxels or more at its larger radius (a
-/// vessel thick enough for cells), split into equal pieces (module doc). Old nodes keep their numbers; new ones follow, edge by edge in
+/// [`MIN_SIDE`] voxels), with either end in a vessel that has cells, split into equal
+/// pieces (module doc). The radii that decide are `decide` (one per node: in a single
+/// run the nodes' own, in a chunked run's merge those the blocks split with); new nodes
+/// interpolate `g`'s. Old nodes keep their numbers; new ones follow, edge by edge in
 /// edge order, and take the component of their edge.
-pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph {
+pub fn split_long_edges(g: NodeGraph, decide: &[f64], cell: f64, spacing: [f64; 3]) -> NodeGraph {
     let coarsest = coarsest(spacing);
     let NodeGraph { graph, mut positions, mut radii, mut component } = g;
     let old = graph.edge_list();
@@ -61,11 +64,12 @@ pub fn split_long_edges(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph
     for (a, b) in old {
         let (p, q) = (positions[a as usize], positions[b as usize]);
         let (ra, rb) = (radii[a as usize], radii[b as usize]);
+        let (da, db) = (decide[a as usize], decide[b as usize]);
         let length = (0..3).map(|d| (q[d] - p[d]).powi(2)).sum::<f64>().sqrt();
-        let longest = cell_side(cell, ra.min(rb), coarsest).max(MIN_SIDE) as f64 * coarsest;
+        let longest = cell_side(cell, da.min(db), coarsest).max(MIN_SIDE) as f64 * coarsest;
         // Neither end in a vessel with cells (too thin or too thick, see `coarse`): left as
         // without a coarse start.
-        let thin = !(has_cells(cell, ra, coarsest) || has_cells(cell, rb, coarsest));
+        let thin = !(has_cells(cell, da, coarsest) || has_cells(cell, db, coarsest));
         let pieces = if thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
         let mut prev = a;
         for k in 1..pieces {
@@ -102,11 +106,29 @@ mod tests {
         NodeGraph { graph: Csr::from_sorted_edges(n, edges), positions, radii, component: vec![0; n] }
     }
 
+    /// A single run's split: the nodes' own radii decide.
+    fn split(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph {
+        let decide = g.radii.clone();
+        split_long_edges(g, &decide, cell, spacing)
+    }
+
+    /// A chunked run's merge splits as the blocks did: with the radii they decided by
+    /// (a radius-4 tube's EDT, cells of 2 voxels), not the output radii it carries (3.82,
+    /// a side of one voxel and no cells), which only the new nodes interpolate.
+    #[test]
+    fn the_deciding_radii_are_not_the_interpolated_ones() {
+        let g = graph(vec![[0.0; 3], [8.0, 0.0, 0.0]], vec![3.82, 3.82], &[(0, 1)]);
+        assert_eq!(split(g.clone(), 0.5, [1.0; 3]).positions.len(), 2);
+        let s = split_long_edges(g, &[4.0, 4.0], 0.5, [1.0; 3]);
+        assert_eq!(s.positions.len(), 5);
+        assert!(s.radii.iter().all(|&r| r == 3.82), "{:?}", s.radii);
+    }
+
     #[test]
     fn an_edge_longer_than_the_cell_side_is_split_evenly() {
         // Radius 4, cell 0.5: sides of 2 voxels; the 10-voxel edge becomes 5 pieces.
         let g = graph(vec![[0.0; 3], [10.0, 0.0, 0.0]], vec![4.0, 6.0], &[(0, 1)]);
-        let s = split_long_edges(g, 0.5, [1.0; 3]);
+        let s = split(g, 0.5, [1.0; 3]);
         assert_eq!(s.positions.len(), 6);
         assert_eq!(s.graph.edge_list(), vec![(0, 2), (1, 5), (2, 3), (3, 4), (4, 5)]);
         for (k, p) in s.positions[2..].iter().enumerate() {
@@ -119,22 +141,22 @@ mod tests {
     fn short_edges_are_kept_and_the_side_follows_the_coarsest_spacing() {
         // A 2-voxel edge at radius 4 is one cell side: kept.
         let g = graph(vec![[0.0; 3], [0.0, 2.0, 0.0], [0.0, 2.0, 2.0]], vec![4.0; 3], &[(0, 1), (1, 2)]);
-        let s = split_long_edges(g.clone(), 0.5, [1.0; 3]);
+        let s = split(g.clone(), 0.5, [1.0; 3]);
         assert_eq!((s.positions, s.graph), (g.positions.clone(), g.graph.clone()));
         // Spacing (0.5, 1, 2): a side is floor(0.5 * 8 / 2) = 2 voxels of 2 units.
-        let s = split_long_edges(graph(vec![[0.0; 3], [0.0, 0.0, 9.0]], vec![8.0; 2], &[(0, 1)]), 0.5, [0.5, 1.0, 2.0]);
+        let s = split(graph(vec![[0.0; 3], [0.0, 0.0, 9.0]], vec![8.0; 2], &[(0, 1)]), 0.5, [0.5, 1.0, 2.0]);
         assert_eq!(s.positions.len(), 4);
         // Thin vessels (a side of one voxel at both ends): no edge is split, as without a
         // coarse start; with one end thick enough for cells, edges over 2 voxels are.
         let thin = |length: f64, r: f64| graph(vec![[0.0; 3], [length, 0.0, 0.0]], vec![0.9, r], &[(0, 1)]);
-        assert_eq!(split_long_edges(thin(2.0, 0.9), 0.5, [1.0; 3]).positions.len(), 2);
-        assert_eq!(split_long_edges(thin(4.5, 0.9), 0.5, [1.0; 3]).positions.len(), 2);
-        assert_eq!(split_long_edges(thin(4.5, 4.0), 0.5, [1.0; 3]).positions.len(), 4);
+        assert_eq!(split(thin(2.0, 0.9), 0.5, [1.0; 3]).positions.len(), 2);
+        assert_eq!(split(thin(4.5, 0.9), 0.5, [1.0; 3]).positions.len(), 2);
+        assert_eq!(split(thin(4.5, 4.0), 0.5, [1.0; 3]).positions.len(), 4);
         // Edges at a junction are split too: a star of three 10-voxel edges at radius 4
         // (sides of 2 voxels) gains 4 nodes per arm, and the centre stays the junction.
         let arm = |d: usize| -> [f64; 3] { std::array::from_fn(|k| if k == d { 10.0 } else { 0.0 }) };
         let star = graph(vec![[0.0; 3], arm(0), arm(1), arm(2)], vec![4.0; 4], &[(0, 1), (0, 2), (0, 3)]);
-        let s = split_long_edges(star, 0.5, [1.0; 3]);
+        let s = split(star, 0.5, [1.0; 3]);
         assert_eq!(s.positions.len(), 16);
         assert_eq!(s.graph.neighbours(0), &[4, 8, 12]);
         assert!(s.graph.edge_list().iter().all(|&(a, b)| {
@@ -157,7 +179,7 @@ mod tests {
         let field = Field::new(mask.view(), [1.0; 3]).unwrap();
         let ends = vec![centre, tip];
         let radii: Vec<f64> = ends.iter().map(|&p| field.radius_at(p)).collect();
-        let s = split_long_edges(graph(ends, radii.clone(), &[(0, 1)]), 0.5, [1.0; 3]);
+        let s = split(graph(ends, radii.clone(), &[(0, 1)]), 0.5, [1.0; 3]);
         assert!(s.positions.len() > 10, "{} nodes", s.positions.len());
         let mut ridge = s.radii.clone();
         ridge_radii(&mut ridge, &s.positions, 2, &field);

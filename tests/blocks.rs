@@ -7,7 +7,18 @@ use vesselflow::{shapes, Params, Skeleton, Skeletonizer, Stop};
 
 /// Run `mask` in blocks of `core` voxels with `halo` voxels around, merged.
 fn chunked(mask: &Array3<u8>, core: usize, halo: usize, spacing: [f64; 3]) -> (Skeleton, Vec<BlockPart>) {
-    let sk = Skeletonizer::new(Params::default()).unwrap();
+    chunked_with(Params::default(), mask, core, halo, spacing)
+}
+
+/// [`chunked`] with `params`.
+fn chunked_with(
+    params: Params,
+    mask: &Array3<u8>,
+    core: usize,
+    halo: usize,
+    spacing: [f64; 3],
+) -> (Skeleton, Vec<BlockPart>) {
+    let sk = Skeletonizer::new(params).unwrap();
     let volume: [usize; 3] = mask.dim().into();
     let mut parts = vec![];
     for i in (0..volume[0]).step_by(core) {
@@ -28,7 +39,11 @@ fn chunked(mask: &Array3<u8>, core: usize, halo: usize, spacing: [f64; 3]) -> (S
 }
 
 fn single(mask: &Array3<u8>, spacing: [f64; 3]) -> Skeleton {
-    Skeletonizer::new(Params::default()).unwrap().run(mask.view(), spacing, &mut |_| true).unwrap()
+    single_with(Params::default(), mask, spacing)
+}
+
+fn single_with(params: Params, mask: &Array3<u8>, spacing: [f64; 3]) -> Skeleton {
+    Skeletonizer::new(params).unwrap().run(mask.view(), spacing, &mut |_| true).unwrap()
 }
 
 /// Connected components and cycle rank (edges - nodes + components).
@@ -54,6 +69,20 @@ fn a_tube_across_blocks_is_one_path_like_the_single_run() {
     assert_eq!(parts.len(), 4 * 2 * 2);
     // Every foreground voxel is in exactly one core.
     assert_eq!(g.info.foreground_voxels, mask.iter().filter(|&&m| m != 0).count());
+}
+
+/// With a coarse start the merge splits long edges as the single run does, by the
+/// radii the blocks split with (the cells' EDT, 4 here), not by the output radii it
+/// carries (3.82 on this tube: no cells at `coarse_cell` 0.5, no split, and 26 nodes
+/// against the single run's 46).
+#[test]
+fn a_coarse_start_splits_a_chunked_tube_like_the_single_run() {
+    let mask = shapes::cylinder([64, 21, 21], 4.0);
+    let params = || Params { coarse_cell: 0.5, ..Params::default() };
+    let (g, _) = chunked_with(params(), &mask, 16, 16, [1.0; 3]);
+    let one = single_with(params(), &mask, [1.0; 3]);
+    assert_eq!(topology(&g), (1, 0));
+    assert!((g.len() as i64 - one.len() as i64).abs() <= 6, "{} vs {}", g.len(), one.len());
 }
 
 #[test]
@@ -177,6 +206,7 @@ fn distinct_nodes_of_a_block_in_one_cell_stay_apart() {
         position: [0.0, 0.0, z],
         count: 1,
         radius: 0.5,
+        split_radius: 0.0,
     };
     let sk = Skeletonizer::new(Params::default()).unwrap();
     let z = |g: &Skeleton| g.positions.iter().map(|p| p[2]).collect::<Vec<_>>();

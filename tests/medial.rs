@@ -170,7 +170,9 @@ fn the_stage_moves_nodes_but_keeps_the_graph() {
 /// On noise (random blobs) and random paths and junctions, a node that moves lands on
 /// a vessel voxel and moves at most `CAP` radii (`MIN_CAP` base cells at least), unless it is
 /// a path node put back between its junction and its other neighbour (the unfolding):
-/// then it sits at their midpoint.
+/// then it sits at their midpoint. A junction moves at most `JUNCTION_CAP` times the
+/// larger of its radius and twice its branches' largest (the parent's over the sine of
+/// the child's angle, at most doubled).
 #[test]
 fn moves_stay_on_the_mask_and_within_the_cap() {
     let mut state = 12345u64;
@@ -222,6 +224,24 @@ fn moves_stay_on_the_mask_and_within_the_cap() {
             let d = segment_distance(*p, *m, *m);
             if unfolded(i) {
                 unfolds += 1;
+            } else if g.neighbours(i).len() >= 3 {
+                // Its branches: the paths from it, to the next junction or end.
+                let mut widest = 0f64;
+                for &first in g.neighbours(i) {
+                    let (mut prev, mut cur) = (i, first as usize);
+                    for _ in 0..n {
+                        widest = widest.max(radii[cur]);
+                        let nb = g.neighbours(cur);
+                        if nb.len() != 2 {
+                            break;
+                        }
+                        let next = if nb[0] as usize == prev { nb[1] } else { nb[0] } as usize;
+                        (prev, cur) = (cur, next);
+                    }
+                }
+                let cap =
+                    (vesselflow::medial::JUNCTION_CAP * r.max(2.0 * widest)).max(vesselflow::medial::MIN_CAP * 0.7);
+                assert!(d <= cap + 1e-9, "junction {p:?} moved {d} with radius {r}, branches to {widest}");
             } else {
                 let cap = (vesselflow::medial::CAP * r).max(vesselflow::medial::MIN_CAP * 0.7);
                 assert!(d <= cap + 1e-9, "{p:?} moved {d} with radius {r}");

@@ -132,7 +132,7 @@ def _block_task(
     return "computed", out
 
 
-PART_FORMAT = 3
+PART_FORMAT = 4
 """Version of the block parts kept in a ``workdir`` (2: one record per node of a block,
 with its position; 3: with the block's sprouts); a workdir of another version is refused
 like one of another set-up."""

@@ -243,6 +243,7 @@ fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("position", position.into_pyarray(py))?;
     d.set_item("count", PyArray1::from_iter(py, part.cells.iter().map(|s| s.count)))?;
     d.set_item("radius", PyArray1::from_iter(py, part.cells.iter().map(|s| s.radius)))?;
+    d.set_item("split_radius", PyArray1::from_iter(py, part.cells.iter().map(|s| s.split_radius)))?;
     for (name, pairs) in [("edges", &part.edges), ("bridges", &part.bridges)] {
         let a = Array2::from_shape_vec((pairs.len(), 2), pairs.as_flattened().to_vec()).map_err(shape_err)?;
         d.set_item(name, a.into_pyarray(py))?;
@@ -274,17 +275,20 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
     let position: PyReadonlyArray2<f64> = get("position")?.extract()?;
     let count: PyReadonlyArray1<u64> = get("count")?.extract()?;
     let radius: PyReadonlyArray1<f64> = get("radius")?.extract()?;
+    let split_radius: PyReadonlyArray1<f64> = get("split_radius")?.extract()?;
     let node: PyReadonlyArray1<u32> = get("node")?.extract()?;
-    let (component, cell, position, count, radius, node) = (
+    let (component, cell, position, count, radius, split_radius, node) = (
         component.as_array(),
         cell.as_array(),
         position.as_array(),
         count.as_array(),
         radius.as_array(),
+        split_radius.as_array(),
         node.as_array(),
     );
     let n = component.len();
-    if cell.dim() != (n, 3) || position.dim() != (n, 3) || count.len() != n || radius.len() != n || node.len() != n {
+    let lengths = [count.len(), radius.len(), split_radius.len(), node.len()];
+    if cell.dim() != (n, 3) || position.dim() != (n, 3) || lengths.iter().any(|&l| l != n) {
         return Err(PyValueError::new_err("block part arrays disagree in length"));
     }
     let cells = (0..n)
@@ -295,6 +299,7 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
             position: std::array::from_fn(|d| position[[i, d]]),
             count: count[i],
             radius: radius[i],
+            split_radius: split_radius[i],
         })
         .collect();
     let pairs = |name: &str| -> PyResult<Vec<[u32; 2]>> { pairs_of(&get(name)?.extract()?, name) };
