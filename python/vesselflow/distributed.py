@@ -134,7 +134,8 @@ def _block_task(
 
 PART_FORMAT = 4
 """Version of the block parts kept in a ``workdir`` (2: one record per node of a block,
-with its position; 3: with the block's sprouts); a workdir of another version is refused
+with its position; 3: with the block's sprouts; 4: with the radius each node split long
+edges by, for the coarse start); a workdir of another version is refused
 like one of another set-up."""
 
 ROUTE_READS = 4
