@@ -497,13 +497,10 @@ fn meeting_point(
             return None;
         }
         let t = t.map(|v| v / n);
+        // Not empty: with both stretches empty `t` above is 0.
         let on_line: Vec<usize> = sx.iter().chain(sy).copied().collect();
-        let count = on_line.len().max(1) as f64;
-        let centre: [f64; 3] = if on_line.is_empty() {
-            p
-        } else {
-            std::array::from_fn(|d| on_line.iter().map(|&i| curves[i][d]).sum::<f64>() / count)
-        };
+        let count = on_line.len() as f64;
+        let centre: [f64; 3] = std::array::from_fn(|d| on_line.iter().map(|&i| curves[i][d]).sum::<f64>() / count);
         let wall = on_line.iter().map(|&i| radii[i]).sum::<f64>() / count;
         // A child's nodes inside the parent's tube sit on the parent's slope, not on
         // the child's axis: its line runs from the first node outside (when two are).
