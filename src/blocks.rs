@@ -16,7 +16,10 @@
 //! The block returns per-node records (position, core voxel count, largest radius)
 //! keyed by (block-local mask component, cell, block-local node): two output nodes of
 //! the block that fall in one cell stay two records. With them go the record pairs
-//! joined by its grid edges between core voxels, and its core voxels on the core's faces.
+//! joined by its grid edges between core voxels, and its core voxels on the core's faces;
+//! with a coarse start, also the split of every edge between two of its records
+//! ([`crate::resample::Chain`]: the nodes the split put there, placed and measured on
+//! the block's mask, or none), which the merge applies to those edges.
 //!
 //! **Merge phase** ([`Skeletonizer::merge_blocks`]): the face voxels of neighbouring
 //! cores are paired (26-neighbours in different blocks); those pairs join the blocks'
@@ -51,7 +54,7 @@ use crate::graph::{RunInfo, Skeleton};
 use crate::grid::Csr;
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
-use crate::resample::split_long_edges;
+use crate::resample::{split_long_edges, Chain};
 use crate::vec3::base_cell;
 use crate::volume::{edt_squared, Voxel};
 use ndarray::ArrayView3;
@@ -92,6 +95,10 @@ pub struct BlockPart {
     pub faces: Vec<(u64, u32)>,
     /// The sprouts whose lobe's farthest voxel lies in the core, in the order grown.
     pub sprouts: Vec<SproutRecord>,
+    /// With a coarse start, the split of every edge between two of `cells` (`ends` are
+    /// `cells` indices): the nodes it put there, as the block's medial and output stages
+    /// left them, or none.
+    pub chains: Vec<Chain>,
 }
 
 /// The 13 offsets of a 26-neighbourhood that come later in C order.
@@ -253,6 +260,22 @@ impl Skeletonizer {
         }
         faces.sort_unstable();
         let node = |i: u32| (skeleton.positions[i as usize], skeleton.radii[i as usize]);
+        let mut record_of_node = vec![u32::MAX; skeleton.positions.len()];
+        for (k, s) in cells.iter().enumerate() {
+            record_of_node[s.node as usize] = k as u32;
+        }
+        let chains = fate
+            .chains
+            .iter()
+            .filter_map(|(ends, nodes)| {
+                let ends = ends.map(|e| record_of_node[e as usize]);
+                (!ends.contains(&u32::MAX)).then(|| Chain {
+                    ends,
+                    positions: nodes.iter().map(|&i| node(i).0).collect(),
+                    radii: nodes.iter().map(|&i| node(i).1).collect(),
+                })
+            })
+            .collect();
         let sprouts = grown
             .iter()
             .filter(|s| in_core(s.tip))
@@ -265,7 +288,7 @@ impl Skeletonizer {
                 radii: s.nodes.clone().map(|i| node(i).1).collect(),
             })
             .collect();
-        Ok(BlockPart { cells, edges, bridges: sorted_pairs(bridges), faces, sprouts })
+        Ok(BlockPart { cells, edges, bridges: sorted_pairs(bridges), faces, sprouts, chains })
     }
 
     /// The largest vessel radius of `mask` (physical units): the largest distance from a
@@ -472,6 +495,9 @@ impl Skeletonizer {
         // Refinement of the short cycles the merge made: a cycle through a seam node is
         // collapsed below `refine_area`; any other cycle is one block's, judged there.
         let max_area = p.refine_area * c * c;
+        // Where each merged node went, and which nodes the refinement made by fusing.
+        let mut now: Vec<u32> = (0..nodes as u32).collect();
+        let mut fused = vec![false; nodes];
         for _ in 0..p.max_refine_iterations {
             let kept = |cycle: &Cycle| !cycle.nodes.iter().any(|&i| seam[i as usize]);
             let Some((positions, moved, _)) = refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &kept)
@@ -483,20 +509,44 @@ impl Skeletonizer {
             let (next, map) = decimate_mapped(&g, &keep, c)?;
             let mut next_seam = vec![false; next.positions.len()];
             let mut next_split = vec![0.0f64; next.positions.len()];
+            let mut next_fused = vec![false; next.positions.len()];
             for (i, &m) in map.iter().enumerate() {
                 next_seam[m as usize] |= seam[i];
                 next_split[m as usize] = next_split[m as usize].max(split_radii[i]);
+                next_fused[m as usize] |= fused[i] || moved[i];
+            }
+            for x in &mut now {
+                *x = map[*x as usize];
             }
             seam = next_seam;
             split_radii = next_split;
+            fused = next_fused;
             g = next;
         }
 
-        // With a coarse start, edges longer than its cells are split as in a single run,
-        // by the radii the blocks split with ([`crate::resample`]; the merge has no mask,
-        // so the new nodes stay on the chords).
+        // With a coarse start, an edge between two records of a block is split as that
+        // block split it (the first block's, in block order), with the nodes placed and
+        // measured there as in a single run, unless the refinement fused an end. Other
+        // edges longer than the cells are split as in a single run, by the radii the
+        // blocks split with ([`crate::resample`]; the merge has no mask, so their new nodes
+        // stay on the chords).
         if p.coarse_cell > 0.0 {
-            g = split_long_edges(g, &split_radii, p.coarse_cell, spacing);
+            let mut given = vec![];
+            for (b, part) in parts.iter().enumerate() {
+                for (k, chain) in part.chains.iter().enumerate() {
+                    if !chain.is_valid() {
+                        return Err(Error::InvalidMask(format!(
+                            "block {b}'s split chain {k} has a radius count unlike its node count, or a \
+                             non-finite or negative value"
+                        )));
+                    }
+                    let ends = [rec(b, chain.ends[0])?, rec(b, chain.ends[1])?].map(|r| now[node_of[r] as usize]);
+                    if ends[0] != ends[1] && !fused[ends[0] as usize] && !fused[ends[1] as usize] {
+                        given.push(Chain { ends, positions: chain.positions.clone(), radii: chain.radii.clone() });
+                    }
+                }
+            }
+            g = split_long_edges(g, &split_radii, p.coarse_cell, spacing, &given);
             seam.resize(g.positions.len(), false);
         }
 

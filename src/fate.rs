@@ -9,13 +9,15 @@ use ndarray::ArrayView3;
 /// Where every foreground voxel of a run went: its node now (voxels in C order), its
 /// mask component, and the initial grid graph; with a coarse start, each node's radius
 /// as the split of long edges reads it ([`crate::resample`]: its cluster's largest
-/// transform value, which a chunked run's merge cannot rebuild from output radii).
+/// transform value, which a chunked run's merge cannot rebuild from output radii) and
+/// the split of every edge ([`crate::resample::split_chains`]).
 #[derive(Debug, Clone)]
 pub struct VoxelFate {
     pub node: Vec<u32>,
     pub component: Vec<u32>,
     pub grid: Csr,
     pub split_radius: Vec<f64>,
+    pub chains: Vec<([u32; 2], Vec<u32>)>,
 }
 
 impl VoxelFate {
@@ -25,6 +27,7 @@ impl VoxelFate {
             component: grid.component.clone(),
             grid: grid.graph.clone(),
             split_radius: vec![],
+            chains: vec![],
         }
     }
 }
@@ -43,19 +46,25 @@ pub(crate) fn in_core(core: [[usize; 2]; 3], v: [usize; 3]) -> bool {
     (0..3).all(|d| core[d][0] <= v[d] && v[d] < core[d][1])
 }
 
-/// Which of a block's `nodes` output nodes own a voxel of its `core`, by `fate` (the
-/// output node of every foreground voxel, in C order: [`VoxelFate::node`]).
+/// Which of a block's `nodes` output nodes the block hands to the merge, by `fate`:
+/// those that own a voxel of its `core`, and the nodes a split put on an edge between
+/// two of those (the block hands their chain over).
 pub(crate) fn core_owners<T: Voxel>(
     mask: ArrayView3<'_, T>,
     core: [[usize; 2]; 3],
-    fate: &[u32],
+    fate: &VoxelFate,
     nodes: usize,
 ) -> Vec<bool> {
     let mut owns = vec![false; nodes];
     let voxels = mask.indexed_iter().filter(|(_, m)| m.is_set()).map(|((i, j, k), _)| [i, j, k]);
     for (id, v) in voxels.enumerate() {
         if in_core(core, v) {
-            owns[fate[id] as usize] = true;
+            owns[fate.node[id] as usize] = true;
+        }
+    }
+    for (ends, chain) in &fate.chains {
+        if owns[ends[0] as usize] && owns[ends[1] as usize] {
+            chain.iter().for_each(|&i| owns[i as usize] = true);
         }
     }
     owns

@@ -271,8 +271,8 @@ impl Skeletonizer {
     /// [`Skeletonizer::run_block_with_stop`] that, with a block's `core` (half-open
     /// ranges per axis), also follows every foreground voxel to its output node
     /// ([`VoxelFate`], for chunked runs) and measures the radii only of the nodes the
-    /// merge reads: those that own a core voxel, and the ends (whose moves bound one
-    /// another's). Also returns the sprouts grown (their nodes own no voxel: the merge
+    /// merge reads: those that own a core voxel, the nodes a split put between two of
+    /// those, and the ends (whose moves bound one another's). Also returns the sprouts grown (their nodes own no voxel: the merge
     /// attaches them).
     pub(crate) fn run_tracked<T: Voxel>(
         &self,
@@ -418,10 +418,11 @@ impl Skeletonizer {
         if p.coarse_cell > 0.0 {
             let decide = g.radii.clone();
             g = clock.time("resample", || {
-                resample::split_long_edges(std::mem::take(&mut g), &decide, p.coarse_cell, spacing)
+                resample::split_long_edges(std::mem::take(&mut g), &decide, p.coarse_cell, spacing, &[])
             });
             if let Some(f) = &mut fate {
                 f.split_radius = decide;
+                f.chains = resample::split_chains(&g.graph, split);
             }
         }
 
@@ -444,7 +445,7 @@ impl Skeletonizer {
             // the radii and the ends (one thread of its own; it is a serial search).
             let sprouts = p.sprouts;
             let owners = match (core, &fate) {
-                (Some(core), Some(fate)) => Some(core_owners(mask, core, &fate.node, g.positions.len())),
+                (Some(core), Some(fate)) => Some(core_owners(mask, core, fate, g.positions.len())),
                 _ => None,
             };
             let measure = |i: usize| owners.as_ref().is_none_or(|o| o[i] || g.graph.neighbours(i).len() == 1);

@@ -38,6 +38,7 @@ use crate::decimate::NodeGraph;
 use crate::grid::Csr;
 use crate::medial::Field;
 use crate::vec3::coarsest;
+use std::collections::HashMap;
 
 /// Shortest limit on an edge, in voxels of the coarsest spacing, when one end is in a
 /// vessel thick enough for cells and the other is not. Edges with neither end in such
@@ -49,34 +50,75 @@ const MIN_SIDE: i64 = 2;
 /// piece never shorter than a voxel, so the cap only bounds the loop).
 const MAX_PIECES: usize = 1 << 16;
 
+/// The nodes a split put on one edge (none if it kept the edge whole), in order from
+/// `ends[0]` to `ends[1]`, with their positions and radii: how a chunked run's block
+/// hands the merge its split, with the nodes its medial and output stages placed and
+/// measured (the merge has no mask to do so, and its ends may have moved since the
+/// split looked at them: a vessel's end node moves out to the vessel's end).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Chain {
+    pub ends: [u32; 2],
+    pub positions: Vec<[f64; 3]>,
+    pub radii: Vec<f64>,
+}
+
+impl Chain {
+    /// A radius for each node, positions finite, radii finite and ≥ 0.
+    pub fn is_valid(&self) -> bool {
+        self.positions.len() == self.radii.len()
+            && self.positions.iter().all(|p| p.iter().all(|x| x.is_finite()))
+            && self.radii.iter().all(|r| r.is_finite() && *r >= 0.0)
+    }
+}
+
 /// `g` with every edge longer than the coarse cell side (`cell_side(cell, r, coarsest)`
 /// voxels of the coarsest spacing, `r` the smaller radius of its ends, at least
 /// [`MIN_SIDE`] voxels), with either end in a vessel that has cells, split into equal
 /// pieces (module doc). The radii that decide are `decide` (one per node: in a single
 /// run the nodes' own, in a chunked run's merge those the blocks split with); new nodes
-/// interpolate `g`'s. Old nodes keep their numbers; new ones follow, edge by edge in
-/// edge order, and take the component of their edge.
-pub fn split_long_edges(g: NodeGraph, decide: &[f64], cell: f64, spacing: [f64; 3]) -> NodeGraph {
+/// interpolate `g`'s. An edge with a chain in `given` (ends in `g`'s numbering, either
+/// order; valid, [`Chain::is_valid`]) takes the first such chain's nodes instead (none:
+/// kept whole), whatever its length. Old nodes keep their numbers; new ones follow, edge by edge in edge order,
+/// and take the component of their edge.
+pub fn split_long_edges(g: NodeGraph, decide: &[f64], cell: f64, spacing: [f64; 3], given: &[Chain]) -> NodeGraph {
     let coarsest = coarsest(spacing);
+    let mut chain_of: HashMap<[u32; 2], &Chain> = HashMap::new();
+    for c in given {
+        chain_of.entry([c.ends[0].min(c.ends[1]), c.ends[0].max(c.ends[1])]).or_insert(c);
+    }
     let NodeGraph { graph, mut positions, mut radii, mut component } = g;
     let old = graph.edge_list();
     let mut edges = Vec::with_capacity(old.len());
     for (a, b) in old {
-        let (p, q) = (positions[a as usize], positions[b as usize]);
-        let (ra, rb) = (radii[a as usize], radii[b as usize]);
-        let (da, db) = (decide[a as usize], decide[b as usize]);
-        let length = (0..3).map(|d| (q[d] - p[d]).powi(2)).sum::<f64>().sqrt();
-        let longest = cell_side(cell, da.min(db), coarsest).max(MIN_SIDE) as f64 * coarsest;
-        // Neither end in a vessel with cells (too thin or too thick, see `coarse`): left as
-        // without a coarse start.
-        let thin = !(has_cells(cell, da, coarsest) || has_cells(cell, db, coarsest));
-        let pieces = if thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
+        let new: Vec<([f64; 3], f64)> = if let Some(chain) = chain_of.get(&[a, b]) {
+            let nodes = chain.positions.iter().copied().zip(chain.radii.iter().copied());
+            if chain.ends[0] == a {
+                nodes.collect()
+            } else {
+                nodes.rev().collect()
+            }
+        } else {
+            let (p, q) = (positions[a as usize], positions[b as usize]);
+            let (ra, rb) = (radii[a as usize], radii[b as usize]);
+            let (da, db) = (decide[a as usize], decide[b as usize]);
+            let length = (0..3).map(|d| (q[d] - p[d]).powi(2)).sum::<f64>().sqrt();
+            let longest = cell_side(cell, da.min(db), coarsest).max(MIN_SIDE) as f64 * coarsest;
+            // Neither end in a vessel with cells (too thin or too thick, see `coarse`):
+            // left as without a coarse start.
+            let thin = !(has_cells(cell, da, coarsest) || has_cells(cell, db, coarsest));
+            let pieces = if thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
+            (1..pieces)
+                .map(|k| {
+                    let t = k as f64 / pieces as f64;
+                    (std::array::from_fn(|d| p[d] + t * (q[d] - p[d])), ra + t * (rb - ra))
+                })
+                .collect()
+        };
         let mut prev = a;
-        for k in 1..pieces {
-            let t = k as f64 / pieces as f64;
+        for (q, r) in new {
             let id = positions.len() as u32;
-            positions.push(std::array::from_fn(|d| p[d] + t * (q[d] - p[d])));
-            radii.push(ra + t * (rb - ra));
+            positions.push(q);
+            radii.push(r);
             component.push(component[a as usize]);
             edges.push((prev, id));
             prev = id;
@@ -85,6 +127,32 @@ pub fn split_long_edges(g: NodeGraph, decide: &[f64], cell: f64, spacing: [f64; 
     }
     edges.sort_unstable();
     NodeGraph { graph: Csr::from_sorted_edges(positions.len(), &edges), positions, radii, component }
+}
+
+/// Every edge of `graph` as [`split_long_edges`] left it, by the old edge it came from:
+/// the old edge's ends (`ends[0] < ends[1]`, numbers below `first`) and the nodes the
+/// split added on it (numbered from `first`) from `ends[0]` to `ends[1]`, none for an
+/// edge it kept whole; sorted by ends.
+pub fn split_chains(graph: &Csr, first: usize) -> Vec<([u32; 2], Vec<u32>)> {
+    let mut chains = vec![];
+    for a in 0..first.min(graph.nodes()) {
+        for &w in graph.neighbours(a) {
+            // New nodes have degree 2: walk on, away from where we came from, to an old
+            // node (at most every new node once).
+            let (mut from, mut at, mut nodes) = (a as u32, w, vec![]);
+            while at as usize >= first && nodes.len() < graph.nodes() {
+                nodes.push(at);
+                let next = graph.neighbours(at as usize).iter().copied().find(|&x| x != from);
+                let Some(next) = next else { break };
+                (from, at) = (at, next);
+            }
+            if (at as usize) < first && (a as u32) < at {
+                chains.push(([a as u32, at], nodes));
+            }
+        }
+    }
+    chains.sort_unstable();
+    chains
 }
 
 /// `radii` with the nodes from `first` on (those [`split_long_edges`] added, once the
@@ -109,7 +177,7 @@ mod tests {
     /// A single run's split: the nodes' own radii decide.
     fn split(g: NodeGraph, cell: f64, spacing: [f64; 3]) -> NodeGraph {
         let decide = g.radii.clone();
-        split_long_edges(g, &decide, cell, spacing)
+        split_long_edges(g, &decide, cell, spacing, &[])
     }
 
     /// A chunked run's merge splits as the blocks did: with the radii they decided by
@@ -119,7 +187,7 @@ mod tests {
     fn the_deciding_radii_are_not_the_interpolated_ones() {
         let g = graph(vec![[0.0; 3], [8.0, 0.0, 0.0]], vec![3.82, 3.82], &[(0, 1)]);
         assert_eq!(split(g.clone(), 0.5, [1.0; 3]).positions.len(), 2);
-        let s = split_long_edges(g, &[4.0, 4.0], 0.5, [1.0; 3]);
+        let s = split_long_edges(g, &[4.0, 4.0], 0.5, [1.0; 3], &[]);
         assert_eq!(s.positions.len(), 5);
         assert!(s.radii.iter().all(|&r| r == 3.82), "{:?}", s.radii);
     }

@@ -85,6 +85,30 @@ fn a_coarse_start_splits_a_chunked_tube_like_the_single_run() {
     assert!((g.len() as i64 - one.len() as i64).abs() <= 6, "{} vs {}", g.len(), one.len());
 }
 
+/// With a coarse start, a volume in one block gives the single run's nodes: the merge
+/// splits each edge as the block split it, with the split nodes the block's medial and
+/// output stages placed and measured (split on the chords instead, they were up to 3.5
+/// voxels off the single run's, and an end the output stage moved out to the vessel's
+/// end made its edge long enough to split where the single run had not).
+#[test]
+fn one_block_with_a_coarse_start_gives_the_single_runs_nodes() {
+    let mask = shapes::torus([24, 64, 64], 20.0, 5.0);
+    let params = || Params { coarse_cell: 0.5, ..Params::default() };
+    let (g, parts) = chunked_with(params(), &mask, 64, 0, [1.0; 3]);
+    let one = single_with(params(), &mask, [1.0; 3]);
+    assert!(parts[0].chains.iter().any(|c| !c.positions.is_empty()));
+    assert_eq!(topology(&g), (1, 1));
+    for (p, r) in g.positions.iter().zip(&g.radii) {
+        let same = one
+            .positions
+            .iter()
+            .zip(&one.radii)
+            .any(|(q, s)| (0..3).all(|d| (p[d] - q[d]).abs() <= 1e-9) && (r - s).abs() <= 1e-9);
+        assert!(same, "merged node at {p:?} (radius {r}) is no node of the single run");
+    }
+    assert!(g.len() >= 40 && one.len() >= g.len(), "{} merged nodes, {} single", g.len(), one.len());
+}
+
 #[test]
 fn a_torus_and_a_y_keep_their_cycle_and_their_junction() {
     let torus = shapes::torus([24, 64, 64], 20.0, 4.0);

@@ -153,11 +153,11 @@ def _block_task(
     return "computed", out
 
 
-PART_FORMAT = 4
+PART_FORMAT = 5
 """Version of the block parts kept in a ``workdir`` (2: one record per node of a block,
 with its position; 3: with the block's sprouts; 4: with the radius each node split long
-edges by, for the coarse start); a workdir of another version is refused
-like one of another set-up."""
+edges by, for the coarse start; 5: with the nodes the split put on the block's edges);
+a workdir of another version is refused like one of another set-up."""
 
 ROUTE_READS = 4
 """Reads a routing task may make: the first with the block phase's halo, each next one

@@ -47,7 +47,7 @@ class Skeletonizer:
         of one node per voxel (never across two touching vessels; vessels of radius under
         ``2 / coarse_cell`` voxels or over 8 voxels keep a node per voxel); afterwards
         edges longer than the larger of a cell side and 2 voxels are split. 0 turns it
-        off (one node per voxel everywhere, the paper).
+        off (one node per voxel everywhere, the paper's start).
     medial_weight : {"radius", "difference"}
         Medial Laplacian weights: ``r_j / sum r_k`` (the authors' code) or
         ``|r_i - r_j| / sum |r_i - r_k|`` (the paper's eq. 3).
@@ -141,7 +141,7 @@ class Skeletonizer:
         connectivity: Literal[6, 18, 26] = 6,
         reconnect_thin: bool = True,
         radius_correction: float = 0.0,
-        coarse_cell: float = 0.0,
+        coarse_cell: float = 0.5,
         medial_weight: Literal["radius", "difference"] = "radius",
         skeletal_angle: float = 10.0,
         anchor_ends: bool = True,

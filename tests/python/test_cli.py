@@ -130,9 +130,10 @@ def test_a_run_says_how_it_ended_and_what_the_graph_holds(tmp_path):
     ]
     # The contraction's parts are timed under one `contract` row, named as in the progress.
     timing = result.stderr.split("stage ", 1)[1].splitlines()
-    assert [line.split()[0] for line in timing if not line.startswith(" ")][:3] == [
+    assert [line.split()[0] for line in timing if not line.startswith(" ")][:4] == [
         "edt",
         "grid",
+        "coarse",
         "contract",
     ]
 

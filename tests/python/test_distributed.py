@@ -101,16 +101,18 @@ def _canonical(g: vesselflow.VesselGraph) -> tuple[np.ndarray, np.ndarray, np.nd
 @pytest.mark.parametrize("seed", [0, 1, 3])
 def test_one_block_gives_the_single_runs_graph(seed: int, client: Any) -> None:
     # One block covering the volume: the merge alone differs from the single run. Beds
-    # 0 and 3 have two output nodes in one merge cell, which a merge keyed by cell alone
-    # fused (one node fewer, its edges moved); they stay two nodes. Beds 1 and 3 grow
-    # sprouts, which the merge attaches where the single run grows them.
+    # 0 and 1 have two output nodes in one merge cell, which a merge keyed by cell alone
+    # fused (one node fewer, its edges moved); they stay two nodes. Beds 0 and 1 grow
+    # sprouts, which the merge attaches where the single run grows them. Every bed has
+    # edges the coarse start split (7 to 16 new nodes), which the merge takes from the
+    # block, placed and measured on the mask, where it once split them on the chords.
     from vesselflow.synth import vascular_bed
 
     mask = vascular_bed(48, seed)
     g = _run(mask, client, chunks=48)
     one = vesselflow.skeletonize(mask)
     assert g.info["blocks_computed"] == 1
-    assert g.info["sprouts"] == one.info["sprouts"] == {0: 0, 1: 3, 3: 1}[seed]
+    assert g.info["sprouts"] == one.info["sprouts"] == {0: 1, 1: 5, 3: 0}[seed]
     assert (g.n_nodes, len(g.edges)) == (one.n_nodes, len(one.edges))
     a, b = _canonical(g), _canonical(one)
     assert np.allclose(a[0], b[0], rtol=0, atol=1e-9)
@@ -286,3 +288,41 @@ def test_the_merge_refuses_bad_sprout_records() -> None:
     too_long = one | {"sprout_length": np.array([2**64 - 1], np.uint64)}
     with pytest.raises(ValueError, match="sprout_length"):
         _core.merge_blocks(sk, [part | too_long], [32, 32, 32], [1.0] * 3)
+
+
+def test_the_merge_refuses_bad_split_chains() -> None:
+    # The split nodes a block hands over (with the coarse start, the default) are
+    # checked like its sprouts: a damaged chain is named, never spliced in.
+    from vesselflow import _core
+
+    mask = _tube((32, 32, 32), r=5.0).astype(np.uint8)
+    sk = _core.Skeletonizer()
+    part = _core.contract_block(sk, mask, [0, 0, 0], [[0, 32]] * 3, [32, 32, 32], [1.0] * 3)
+    assert len(part["component"]) >= 2
+    good = _core.merge_blocks(sk, [part], [32, 32, 32], [1.0] * 3)
+    chain = {
+        "chain_ends": np.array([[0, 1]], np.uint32),
+        "chain_length": np.array([1], np.uint64),
+        "chain_position": np.array([[np.nan, 4.0, 4.0]]),
+        "chain_radius": np.array([1.0]),
+    }
+    with pytest.raises(ValueError, match="split chain 0"):
+        _core.merge_blocks(sk, [part | chain], [32, 32, 32], [1.0] * 3)
+    with pytest.raises(ValueError, match="chain_length"):
+        _core.merge_blocks(
+            sk, [part | chain | {"chain_length": np.array([3], np.uint64)}], [32] * 3, [1.0] * 3
+        )
+    beyond = chain | {
+        "chain_ends": np.array([[0, 10**6]], np.uint32),
+        "chain_position": np.full((1, 3), 4.0),
+    }
+    with pytest.raises(ValueError, match="does not hold"):
+        _core.merge_blocks(sk, [part | beyond], [32, 32, 32], [1.0] * 3)
+    # The tube's edges are split (the merge adds the chains' nodes to the records');
+    # without a coarse start the chains are not read.
+    assert len(good[0]) > len(part["component"])
+    off = _core.Skeletonizer(coarse_cell=0.0)
+    plain = _core.merge_blocks(off, [part], [32] * 3, [1.0] * 3)
+    assert np.array_equal(
+        _core.merge_blocks(off, [part | beyond], [32] * 3, [1.0] * 3)[0], plain[0]
+    )

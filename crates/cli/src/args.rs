@@ -82,7 +82,7 @@ fn parameter_help(name: &str) -> Option<&'static str> {
         }
         "coarse_cell" => {
             "Start from cells of voxels this many vessel radii wide (0 to 4) instead of one node per voxel, in \
-             vessels 2 / coarse_cell to 8 voxels in radius; 0 turns it off."
+             vessels 2 / coarse_cell to 8 voxels in radius; 0 turns it off (one node per voxel, the paper's start)."
         }
         "medial_weight" => {
             "Weights of the medial Laplacian, which pulls nodes to the vessel axis: 'radius' (the authors' code) or \

@@ -11,6 +11,7 @@ use vesselflow::blocks::{BlockPart, NodeRecord};
 use vesselflow::blocks_route::{owner_voxel, RoutedPart};
 use vesselflow::blocks_sprouts::SproutRecord;
 use vesselflow::graph::{RunInfo, Skeleton};
+use vesselflow::resample::Chain;
 use vesselflow::Stop;
 
 use crate::errors;
@@ -263,6 +264,16 @@ fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
         rows(part.sprouts.iter().flat_map(|s| s.positions.as_flattened().to_vec()).collect(), m).map_err(shape_err)?;
     d.set_item("sprout_position", nodes.into_pyarray(py))?;
     d.set_item("sprout_radius", PyArray1::from_iter(py, part.sprouts.iter().flat_map(|s| s.radii.iter().copied())))?;
+    // Split chains: their ends one row each, their nodes concatenated (`chain_length` each).
+    let ends = Array2::from_shape_vec((part.chains.len(), 2), part.chains.iter().flat_map(|c| c.ends).collect())
+        .map_err(shape_err)?;
+    d.set_item("chain_ends", ends.into_pyarray(py))?;
+    d.set_item("chain_length", PyArray1::from_iter(py, part.chains.iter().map(|c| c.positions.len() as u64)))?;
+    let m = part.chains.iter().map(|c| c.positions.len()).sum();
+    let nodes =
+        rows(part.chains.iter().flat_map(|c| c.positions.as_flattened().to_vec()).collect(), m).map_err(shape_err)?;
+    d.set_item("chain_position", nodes.into_pyarray(py))?;
+    d.set_item("chain_radius", PyArray1::from_iter(py, part.chains.iter().flat_map(|c| c.radii.iter().copied())))?;
     Ok(d)
 }
 
@@ -309,7 +320,45 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
         return Err(PyValueError::new_err("block part face arrays disagree in length"));
     }
     let faces = voxel.as_array().iter().copied().zip(face_cell.as_array().iter().copied()).collect();
-    Ok(BlockPart { cells, edges: pairs("edges")?, bridges: pairs("bridges")?, faces, sprouts: sprouts_from_py(&get)? })
+    Ok(BlockPart {
+        cells,
+        edges: pairs("edges")?,
+        bridges: pairs("bridges")?,
+        faces,
+        sprouts: sprouts_from_py(&get)?,
+        chains: chains_from_py(&get)?,
+    })
+}
+
+fn chains_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> PyResult<Vec<Chain>> {
+    let ends = pairs_of::<u32>(&get("chain_ends")?.extract()?, "chain_ends")?;
+    let length: PyReadonlyArray1<u64> = get("chain_length")?.extract()?;
+    let position: PyReadonlyArray2<f64> = get("chain_position")?.extract()?;
+    let radius: PyReadonlyArray1<f64> = get("chain_radius")?.extract()?;
+    let (length, radius) = (length.as_array(), radius.as_array());
+    let position = points(&position, "chain_position")?;
+    let total = length.iter().try_fold(0u64, |a, &n| a.checked_add(n));
+    if length.len() != ends.len() {
+        return Err(PyValueError::new_err("block part chain arrays disagree in length"));
+    }
+    if total != Some(position.len() as u64) || total != Some(radius.len() as u64) {
+        return Err(PyValueError::new_err("block part chain nodes disagree with `chain_length`"));
+    }
+    let mut at = 0usize;
+    Ok(ends
+        .into_iter()
+        .zip(length)
+        .map(|(ends, &n)| {
+            let n = n as usize;
+            let c = Chain {
+                ends,
+                positions: position[at..at + n].to_vec(),
+                radii: radius.slice(ndarray::s![at..at + n]).to_vec(),
+            };
+            at += n;
+            c
+        })
+        .collect())
 }
 
 fn sprouts_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> PyResult<Vec<SproutRecord>> {
