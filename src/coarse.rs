@@ -34,11 +34,12 @@ const MAX_DOUBLING: usize = 64;
 
 /// The coarse start graph of `grid` with cells `cell` times the local vessel radius
 /// wide (module doc), and the cell of every grid node. `cell <= 0` keeps the grid
-/// graph (one cell per voxel). `spacing` is the grid's voxel spacing.
-pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec<u32>) {
+/// graph (one cell per voxel). `spacing` is the grid's voxel spacing; `origin` the
+/// voxel of the whole volume at the grid's voxel `(0, 0, 0)` (a chunked run's block
+/// origin, 0 for a single run): the boxes are those of the whole volume's box grid, so
+/// a block's cells are the single run's wherever it reads the same radii.
+pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) -> (NodeGraph, Vec<u32>) {
     let n = grid.positions.len();
-    let g = &grid.graph;
-    let radii = &grid.radii;
     if cell <= 0.0 || n == 0 {
         let map = (0..n as u32).collect();
         return (
@@ -46,6 +47,10 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
             map,
         );
     }
+    // The grid's arrays are dropped as soon as they are no longer read: this stage is
+    // the run's peak (the grid graph and the cells' arrays at once).
+    let GridGraph { graph, positions, radii, component, .. } = grid;
+    let g = &graph;
     // The climb: every node to its neighbour of largest EDT (the first in node order
     // among equals) while that is strictly larger; the centre is where it stops.
     let mut centre: Vec<u32> = (0..n)
@@ -71,7 +76,8 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
     // The box of a voxel: its side (the same number of voxels along every axis), then
     // its index along each.
     let coarsest = coarsest(spacing);
-    let voxel = |i: usize| -> [i64; 3] { std::array::from_fn(|d| (grid.positions[i][d] / spacing[d]).round() as i64) };
+    let voxel =
+        |i: usize| -> [i64; 3] { std::array::from_fn(|d| (positions[i][d] / spacing[d]).round() as i64 + origin[d]) };
     let box_of = |i: usize| -> [i64; 6] {
         let r = radii[centre[i] as usize];
         let v = voxel(i);
@@ -80,7 +86,7 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
         [side[0], side[1], side[2], v[0].div_euclid(side[0]), v[1].div_euclid(side[1]), v[2].div_euclid(side[2])]
     };
     let same_vessel = |i: usize, j: usize| {
-        let (a, b) = (grid.positions[centre[i] as usize], grid.positions[centre[j] as usize]);
+        let (a, b) = (positions[centre[i] as usize], positions[centre[j] as usize]);
         let d2: f64 = (0..3).map(|d| (a[d] - b[d]).powi(2)).sum();
         let r = radii[centre[i] as usize].min(radii[centre[j] as usize]);
         d2 < r * r
@@ -105,35 +111,35 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64) -> (NodeGraph, Vec
         }
         map[i] = map[root];
     }
+    drop(uf);
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.
     let mut wide = vec![false; cells as usize];
     for i in 0..n {
         wide[map[i] as usize] |= has_cells(cell, radii[centre[i] as usize], coarsest);
     }
+    drop(centre);
     let cells = absorb_leaves(g, &mut map, &wide);
     let (start, members) = members_by_cluster(&map, cells);
     let merged: Vec<([f64; 3], f64)> = (0..cells)
         .into_par_iter()
         .map(|k| {
             let m = &members[start[k]..start[k + 1]];
-            let (mean, r) = mean_and_largest(m, &grid.positions, radii);
-            let at: [i64; 3] = std::array::from_fn(|d| (mean[d] / spacing[d]).round() as i64);
-            let d2 = |i: u32| -> f64 { (0..3).map(|d| (grid.positions[i as usize][d] - mean[d]).powi(2)).sum() };
+            let (mean, r) = mean_and_largest(m, &positions, &radii);
+            let at: [i64; 3] = std::array::from_fn(|d| (mean[d] / spacing[d]).round() as i64 + origin[d]);
+            let d2 = |i: u32| -> f64 { (0..3).map(|d| (positions[i as usize][d] - mean[d]).powi(2)).sum() };
             let position = if m.iter().any(|&i| voxel(i as usize) == at) {
                 mean
             } else {
                 let nearest = m.iter().copied().min_by(|&a, &b| d2(a).total_cmp(&d2(b))).unwrap_or(m[0]);
-                grid.positions[nearest as usize]
+                positions[nearest as usize]
             };
             (position, r)
         })
         .collect();
-    let next = NodeGraph {
-        graph: quotient(g, &map, &start, &members),
-        positions: merged.iter().map(|m| m.0).collect(),
-        radii: merged.iter().map(|m| m.1).collect(),
-        component: (0..cells).map(|k| grid.component[members[start[k]] as usize]).collect(),
-    };
+    drop((positions, radii));
+    let component = (0..cells).map(|k| component[members[start[k]] as usize]).collect();
+    let (positions, radii) = merged.into_iter().unzip();
+    let next = NodeGraph { graph: quotient(g, &map, &start, &members), positions, radii, component };
     (next, map)
 }
 

@@ -332,9 +332,9 @@ impl Skeletonizer {
         let mut fate = core.is_some().then(|| VoxelFate::new(&grid));
         // Off, the start graph is the grid graph (no stage in the timings).
         let (mut g, map) = if p.coarse_cell > 0.0 {
-            clock.time("coarse", || pool.install(|| coarse::coarsen(grid, spacing, p.coarse_cell)))
+            clock.time("coarse", || pool.install(|| coarse::coarsen(grid, spacing, p.coarse_cell, offset)))
         } else {
-            coarse::coarsen(grid, spacing, 0.0)
+            coarse::coarsen(grid, spacing, 0.0, offset)
         };
         follow(&mut fate, &map);
         drop(map);

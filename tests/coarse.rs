@@ -19,7 +19,7 @@ fn grid_of(mask: &Array3<u8>) -> GridGraph {
 
 fn coarse(mask: &Array3<u8>, cell: f64) -> (GridGraph, NodeGraph, Vec<u32>) {
     let g = grid_of(mask);
-    let (c, map) = coarsen(g.clone(), [1.0; 3], cell);
+    let (c, map) = coarsen(g.clone(), [1.0; 3], cell, [0; 3]);
     (g, c, map)
 }
 
@@ -174,7 +174,7 @@ fn the_same_graph_for_any_thread_count() {
     let g = grid_of(&mask);
     let on = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        pool.install(|| coarsen(g.clone(), [1.0; 3], CELL))
+        pool.install(|| coarsen(g.clone(), [1.0; 3], CELL, [0; 3]))
     };
     let (one, map1) = on(1);
     for threads in [2, 5] {
@@ -198,4 +198,37 @@ fn the_same_graph_for_any_thread_count() {
     assert_eq!(runs[0].positions, runs[1].positions);
     assert_eq!(runs[0].edges, runs[1].edges);
     assert_eq!(runs[0].radii, runs[1].radii);
+}
+
+/// A block of a chunked run groups its voxels in the whole volume's boxes: cut a radius-5
+/// tube (boxes of 2 voxels at 0.5) at voxel 11, an odd offset, and the block's cells away
+/// from the cut are the whole volume's, voxel for voxel. Boxes counted from the block's
+/// own first voxel would be shifted by one there and share no cell.
+#[test]
+fn a_block_groups_its_voxels_in_the_volumes_boxes() {
+    let whole = shapes::cylinder([64, 15, 15], 5.0);
+    let from = 11;
+    let block = whole.slice(ndarray::s![from.., .., ..]).to_owned();
+    let (_, _, map) = coarse(&whole, 0.5);
+    let g = grid_of(&block);
+    let (_, block_map) = coarsen(g.clone(), [1.0; 3], 0.5, [from as i64, 0, 0]);
+    let (_, local_map) = coarsen(g.clone(), [1.0; 3], 0.5, [0; 3]);
+    // Grid nodes are the foreground voxels in C order: the block's are the whole's from
+    // the cut on.
+    let skipped = whole.slice(ndarray::s![..from, .., ..]).iter().filter(|&&v| v != 0).count();
+    let axial = |k: usize| g.positions[k][0] as usize + from;
+    let far = (0..g.positions.len()).filter(|&k| (22..50).contains(&axial(k))).collect::<Vec<_>>();
+    assert!(far.len() > 1000);
+    let (mut same, mut shifted) = (0, 0);
+    for &a in &far {
+        for &b in &far {
+            if a < b && (g.positions[a][0] - g.positions[b][0]).abs() <= 1.0 {
+                let together = map[a + skipped] == map[b + skipped];
+                assert_eq!(block_map[a] == block_map[b], together, "voxels {a} and {b} of the block");
+                same += usize::from(together);
+                shifted += usize::from(together != (local_map[a] == local_map[b]));
+            }
+        }
+    }
+    assert!(same > 1000 && shifted > 1000, "{same} pairs share a cell, {shifted} differ with local boxes");
 }
