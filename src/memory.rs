@@ -14,7 +14,7 @@
 //! | count | row offsets of the foreground | `8 n0 n1` |
 //! | edt | row offsets; the EDT at the `N` foreground voxels (`f32`); one plane of run lengths (`u32`); per thread a plane buffer (`f32`, resident only where written) and envelope scratch | `8 n0 n1 + 4 N + 4 n1 n2 + T (4 min(n1 n2, N) + 40 max(n1, n2))` |
 //! | grid | the EDT; the foreground rows (`8 n0 n1 + 4 N`); per node its base-neighbour slots, degree, CSR, union-find, positions, radii, components | `8 n0 n1 + GRID[c] N` |
-//! | contract | skeletal flags and slab order; while `M` is assembled the node graph (CSR, positions, radii, components) and the l2-norm and medial Laplacians (one `f64` row total per node each: their weights are computed as `M` reads them); during the solve the whole node graph packed ([`crate::packed`], ~15 bytes a node on the 256³ bed), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) and the four conjugate-gradient vectors (one `f64`, three `f32`: 60 bytes) | `CONTRACT[c] N` |
+//! | contract | the EDT and the foreground rows, kept for the medial stage (`8 n0 n1 + 4 N`); skeletal flags and slab order; while `M` is assembled the node graph (CSR, positions, radii, components) and the l2-norm and medial Laplacians (one `f64` row total per node each: their weights are computed as `M` reads them); during the solve the whole node graph packed ([`crate::packed`], ~15 bytes a node on the 256³ bed), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) and the four conjugate-gradient vectors (one `f64`, three `f32`: 60 bytes) | `8 n0 n1 + 4 N + CONTRACT[c] N` |
 //!
 //! `CONTRACT[c]` (bytes per foreground voxel at connectivity `c`) is the largest
 //! measured peak, over the mask and [`BASE`], with a margin of at least 10 %: the
@@ -99,7 +99,7 @@ pub fn estimate(shape: [usize; 3], foreground: usize, connectivity: Connectivity
     // holding foreground voxels become resident.
     let edt = rows + 4 * n + 4 * plane + threads * (4 * plane.min(n + 1024) + 40 * n1.max(n2));
     let c = index(connectivity);
-    Estimate { edt, grid: rows + 4 * n + GRID[c] * n, contract: CONTRACT[c] * n }
+    Estimate { edt, grid: rows + 4 * n + GRID[c] * n, contract: rows + 4 * n + CONTRACT[c] * n }
 }
 
 /// Refuse a run whose estimated `peak` exceeds `max_memory` (bytes; 0 = no limit).

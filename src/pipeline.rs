@@ -313,18 +313,18 @@ impl Skeletonizer {
         stop.check()?;
         // Count the foreground (one cheap pass), and refuse a run that would need more
         // memory than `max_memory` before any heavy stage.
-        let edt = clock.time("edt", || -> Result<Vec<f32>> {
+        let (starts, edt) = clock.time("edt", || -> Result<(Vec<usize>, Vec<f32>)> {
             let starts = pool.install(|| foreground_rows(mask))?;
             let shape = [n0, n1, n2];
             let need = memory::estimate(shape, starts[n0 * n1], p.connectivity, pool.current_num_threads());
             memory::check(need.peak(), p.max_memory.unwrap_or(0))?;
-            pool.install(|| edt_squared_rows(mask, &starts, spacing))
+            let edt = pool.install(|| edt_squared_rows(mask, &starts, spacing))?;
+            Ok((starts, edt))
         })?;
         stop.check()?;
         report(observer, "edt", 0, 0, f64::NAN)?;
         let grid = clock.time("grid", || pool.install(|| grid::build(mask, &edt, spacing, p)))?;
         stop.check()?;
-        drop(edt);
         let n = grid.positions.len();
         info.foreground_voxels = n;
         info.mask_components = grid.components;
@@ -426,8 +426,10 @@ impl Skeletonizer {
             }
         }
 
-        // The distance transform, for the medial stage and the routing of edges.
-        let field = clock.time("medial", || pool.install(|| medial::Field::new(mask, spacing)))?;
+        // The distance transform, for the medial stage and the routing of edges: the
+        // first stage's, kept (4 bytes per vessel voxel) rather than computed again.
+        let field =
+            clock.time("medial", || pool.install(|| medial::Field::from_squared(mask, spacing, starts, edt)))?;
         stop.check()?;
         if p.medial {
             g.positions =
