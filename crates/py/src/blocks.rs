@@ -258,23 +258,62 @@ fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
     let start = rows(part.sprouts.iter().flat_map(|s| s.start).collect(), k).map_err(shape_err)?;
     d.set_item("sprout_start", start.into_pyarray(py))?;
     d.set_item("sprout_start_radius", PyArray1::from_iter(py, part.sprouts.iter().map(|s| s.start_radius)))?;
-    d.set_item("sprout_length", PyArray1::from_iter(py, part.sprouts.iter().map(|s| s.positions.len() as u64)))?;
-    let m = part.sprouts.iter().map(|s| s.positions.len()).sum();
-    let nodes =
-        rows(part.sprouts.iter().flat_map(|s| s.positions.as_flattened().to_vec()).collect(), m).map_err(shape_err)?;
-    d.set_item("sprout_position", nodes.into_pyarray(py))?;
-    d.set_item("sprout_radius", PyArray1::from_iter(py, part.sprouts.iter().flat_map(|s| s.radii.iter().copied())))?;
+    set_node_lists(&d, "sprout", part.sprouts.iter().map(|s| (&s.positions[..], &s.radii[..])))?;
     // Split chains: their ends one row each, their nodes concatenated (`chain_length` each).
     let ends = Array2::from_shape_vec((part.chains.len(), 2), part.chains.iter().flat_map(|c| c.ends).collect())
         .map_err(shape_err)?;
     d.set_item("chain_ends", ends.into_pyarray(py))?;
-    d.set_item("chain_length", PyArray1::from_iter(py, part.chains.iter().map(|c| c.positions.len() as u64)))?;
-    let m = part.chains.iter().map(|c| c.positions.len()).sum();
-    let nodes =
-        rows(part.chains.iter().flat_map(|c| c.positions.as_flattened().to_vec()).collect(), m).map_err(shape_err)?;
-    d.set_item("chain_position", nodes.into_pyarray(py))?;
-    d.set_item("chain_radius", PyArray1::from_iter(py, part.chains.iter().flat_map(|c| c.radii.iter().copied())))?;
+    set_node_lists(&d, "chain", part.chains.iter().map(|c| (&c.positions[..], &c.radii[..])))?;
     Ok(d)
+}
+
+/// Node lists of one kind (`{kind}_length` nodes each, their rows of `{kind}_position` and
+/// `{kind}_radius` concatenated in order): how sprouts and split chains travel.
+fn set_node_lists<'a>(
+    d: &Bound<'_, PyDict>,
+    kind: &str,
+    lists: impl Iterator<Item = (&'a [[f64; 3]], &'a [f64])> + Clone,
+) -> PyResult<()> {
+    let py = d.py();
+    d.set_item(format!("{kind}_length"), PyArray1::from_iter(py, lists.clone().map(|l| l.0.len() as u64)))?;
+    let flat: Vec<f64> = lists.clone().flat_map(|l| l.0.as_flattened().iter().copied()).collect();
+    let nodes = Array2::from_shape_vec((flat.len() / 3, 3), flat).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    d.set_item(format!("{kind}_position"), nodes.into_pyarray(py))?;
+    d.set_item(format!("{kind}_radius"), PyArray1::from_iter(py, lists.flat_map(|l| l.1.iter().copied())))?;
+    Ok(())
+}
+
+/// One node list: positions and radii.
+type NodeList = (Vec<[f64; 3]>, Vec<f64>);
+
+/// The `count` node lists of one kind that [`set_node_lists`] wrote.
+fn node_lists_from_py<'py>(
+    get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>,
+    kind: &str,
+    count: usize,
+) -> PyResult<Vec<NodeList>> {
+    let length: PyReadonlyArray1<u64> = get(&format!("{kind}_length"))?.extract()?;
+    let position: PyReadonlyArray2<f64> = get(&format!("{kind}_position"))?.extract()?;
+    let radius: PyReadonlyArray1<f64> = get(&format!("{kind}_radius"))?.extract()?;
+    let (length, radius) = (length.as_array(), radius.as_array());
+    let position = points(&position, &format!("{kind}_position"))?;
+    if length.len() != count {
+        return Err(PyValueError::new_err(format!("block part {kind} arrays disagree in length")));
+    }
+    let total = length.iter().try_fold(0u64, |a, &n| a.checked_add(n));
+    if total != Some(position.len() as u64) || total != Some(radius.len() as u64) {
+        return Err(PyValueError::new_err(format!("block part {kind} nodes disagree with `{kind}_length`")));
+    }
+    let mut at = 0usize;
+    Ok(length
+        .iter()
+        .map(|&n| {
+            let n = n as usize;
+            let list = (position[at..at + n].to_vec(), radius.slice(ndarray::s![at..at + n]).to_vec());
+            at += n;
+            list
+        })
+        .collect())
 }
 
 fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
@@ -332,33 +371,8 @@ fn part_from_py(d: &Bound<'_, PyDict>) -> PyResult<BlockPart> {
 
 fn chains_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> PyResult<Vec<Chain>> {
     let ends = pairs_of::<u32>(&get("chain_ends")?.extract()?, "chain_ends")?;
-    let length: PyReadonlyArray1<u64> = get("chain_length")?.extract()?;
-    let position: PyReadonlyArray2<f64> = get("chain_position")?.extract()?;
-    let radius: PyReadonlyArray1<f64> = get("chain_radius")?.extract()?;
-    let (length, radius) = (length.as_array(), radius.as_array());
-    let position = points(&position, "chain_position")?;
-    let total = length.iter().try_fold(0u64, |a, &n| a.checked_add(n));
-    if length.len() != ends.len() {
-        return Err(PyValueError::new_err("block part chain arrays disagree in length"));
-    }
-    if total != Some(position.len() as u64) || total != Some(radius.len() as u64) {
-        return Err(PyValueError::new_err("block part chain nodes disagree with `chain_length`"));
-    }
-    let mut at = 0usize;
-    Ok(ends
-        .into_iter()
-        .zip(length)
-        .map(|(ends, &n)| {
-            let n = n as usize;
-            let c = Chain {
-                ends,
-                positions: position[at..at + n].to_vec(),
-                radii: radius.slice(ndarray::s![at..at + n]).to_vec(),
-            };
-            at += n;
-            c
-        })
-        .collect())
+    let lists = node_lists_from_py(get, "chain", ends.len())?;
+    Ok(ends.into_iter().zip(lists).map(|(ends, (positions, radii))| Chain { ends, positions, radii }).collect())
 }
 
 fn sprouts_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> PyResult<Vec<SproutRecord>> {
@@ -366,34 +380,23 @@ fn sprouts_from_py<'py>(get: &dyn Fn(&str) -> PyResult<Bound<'py, PyAny>>) -> Py
     let split: PyReadonlyArray1<bool> = get("sprout_split")?.extract()?;
     let start: PyReadonlyArray2<f64> = get("sprout_start")?.extract()?;
     let start_radius: PyReadonlyArray1<f64> = get("sprout_start_radius")?.extract()?;
-    let length: PyReadonlyArray1<u64> = get("sprout_length")?.extract()?;
-    let position: PyReadonlyArray2<f64> = get("sprout_position")?.extract()?;
-    let radius: PyReadonlyArray1<f64> = get("sprout_radius")?.extract()?;
-    let (round, split, start_radius, length, radius) =
-        (round.as_array(), split.as_array(), start_radius.as_array(), length.as_array(), radius.as_array());
-    let (start, position) = (points(&start, "sprout_start")?, points(&position, "sprout_position")?);
+    let (round, split, start_radius) = (round.as_array(), split.as_array(), start_radius.as_array());
+    let start = points(&start, "sprout_start")?;
     let k = round.len();
-    let total = length.iter().try_fold(0u64, |a, &n| a.checked_add(n));
-    if split.len() != k || start.len() != k || start_radius.len() != k || length.len() != k {
+    if split.len() != k || start.len() != k || start_radius.len() != k {
         return Err(PyValueError::new_err("block part sprout arrays disagree in length"));
     }
-    if total != Some(position.len() as u64) || total != Some(radius.len() as u64) {
-        return Err(PyValueError::new_err("block part sprout nodes disagree with `sprout_length`"));
-    }
-    let mut at = 0usize;
-    Ok((0..k)
-        .map(|i| {
-            let n = length[i] as usize;
-            let s = SproutRecord {
-                round: round[i],
-                split: split[i],
-                start: start[i],
-                start_radius: start_radius[i],
-                positions: position[at..at + n].to_vec(),
-                radii: radius.slice(ndarray::s![at..at + n]).to_vec(),
-            };
-            at += n;
-            s
+    let lists = node_lists_from_py(get, "sprout", k)?;
+    Ok(lists
+        .into_iter()
+        .enumerate()
+        .map(|(i, (positions, radii))| SproutRecord {
+            round: round[i],
+            split: split[i],
+            start: start[i],
+            start_radius: start_radius[i],
+            positions,
+            radii,
         })
         .collect())
 }
