@@ -19,7 +19,7 @@
 //!   then edge order: the same graph, bit for bit, for any worker count.
 
 use crate::blocks::{block_pool, check_core};
-use crate::edges_inside::{outside_run, route_with_radii, PATH_MARGIN};
+use crate::edges_inside::{outside_run, path_margin, route_with_radii};
 use crate::error::{Error, Result};
 use crate::graph::Skeleton;
 use crate::grid::Csr;
@@ -44,7 +44,7 @@ pub fn owner_voxel(p: [f64; 3], q: [f64; 3], spacing: [f64; 3], volume: [usize; 
 /// given `reach`, the larger distance-transform value at its ends in base cells.
 pub fn needed_margin(reach: f64, spacing: [f64; 3], d: usize) -> f64 {
     let c = base_cell(spacing);
-    (SEARCH_LIMIT + PATH_MARGIN + 1) as f64 + 2.0 * (reach + 1.0) * c / spacing[d]
+    (SEARCH_LIMIT + path_margin(spacing)[d] + 1) as f64 + 2.0 * (reach + 1.0) * c / spacing[d]
 }
 
 /// What the routing phase returns for one block.
