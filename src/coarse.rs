@@ -94,9 +94,10 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
     // Cells: connected pieces of a box, numbered by their first voxel.
     let mut uf = UnionFind::<u32>::new(n);
     for i in 0..n {
+        let bi = box_of(i);
         for &j in g.neighbours(i) {
             let j = j as usize;
-            if j > i && box_of(i) == box_of(j) && same_vessel(i, j) {
+            if j > i && bi == box_of(j) && same_vessel(i, j) {
                 uf.union(i as u32, j as u32);
             }
         }
