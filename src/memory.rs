@@ -97,9 +97,12 @@ pub fn estimate(shape: [usize; 3], foreground: usize, connectivity: Connectivity
     let plane = n1 * n2;
     // The per-thread plane buffers are zeroed lazily by the system: only the pages
     // holding foreground voxels become resident.
-    let edt = rows + 4 * n + 4 * plane + threads * (4 * plane.min(n + 1024) + 40 * n1.max(n2));
+    // The foreground rows and the EDT at the foreground, kept from the first stage to
+    // the medial stage.
+    let kept = rows + 4 * n;
+    let edt = kept + 4 * plane + threads * (4 * plane.min(n + 1024) + 40 * n1.max(n2));
     let c = index(connectivity);
-    Estimate { edt, grid: rows + 4 * n + GRID[c] * n, contract: rows + 4 * n + CONTRACT[c] * n }
+    Estimate { edt, grid: kept + GRID[c] * n, contract: kept + CONTRACT[c] * n }
 }
 
 /// Refuse a run whose estimated `peak` exceeds `max_memory` (bytes; 0 = no limit).

@@ -134,7 +134,7 @@ pub fn owner_voxels<'py>(
         out.extend(owner_voxel(pa, pb, spacing, volume).map(|x| x as i64));
     }
     let n = out.len() / 3;
-    Ok(Array2::from_shape_vec((n, 3), out).map_err(|e| PyValueError::new_err(e.to_string()))?.into_pyarray(py))
+    Ok(Array2::from_shape_vec((n, 3), out).map_err(shape_err)?.into_pyarray(py))
 }
 
 /// The routing phase on one block (`mask` uint8, block plus halo; see `contract_block`
@@ -164,7 +164,6 @@ pub fn route_block<'py>(
     let part = py
         .detach(|| errors::no_panic(context, || sk.route_block(view, origin, core, volume, spacing, &nodes, &p, &e)))?
         .map_err(errors::core)?;
-    let shape_err = |e: ndarray::ShapeError| PyValueError::new_err(e.to_string());
     let d = PyDict::new(py);
     let replaced =
         Array2::from_shape_vec((part.replaced.len(), 2), part.replaced.as_flattened().to_vec()).map_err(shape_err)?;
@@ -231,9 +230,14 @@ pub fn splice_routes<'py>(
     skeleton_to_py(py, out)
 }
 
+/// An array of the wrong shape for its rows: the one error of building the arrays a
+/// block part or a routed part travels in.
+fn shape_err(e: ndarray::ShapeError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
 fn part_to_py(py: Python<'_>, part: BlockPart) -> PyResult<Bound<'_, PyDict>> {
     let rows = |v: Vec<f64>, n: usize| Array2::from_shape_vec((n, 3), v);
-    let shape_err = |e: ndarray::ShapeError| PyValueError::new_err(e.to_string());
     let n = part.cells.len();
     let d = PyDict::new(py);
     d.set_item("component", PyArray1::from_iter(py, part.cells.iter().map(|s| s.component)))?;
@@ -277,7 +281,7 @@ fn set_node_lists<'a>(
     let py = d.py();
     d.set_item(format!("{kind}_length"), PyArray1::from_iter(py, lists.clone().map(|l| l.0.len() as u64)))?;
     let flat: Vec<f64> = lists.clone().flat_map(|l| l.0.as_flattened().iter().copied()).collect();
-    let nodes = Array2::from_shape_vec((flat.len() / 3, 3), flat).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let nodes = Array2::from_shape_vec((flat.len() / 3, 3), flat).map_err(shape_err)?;
     d.set_item(format!("{kind}_position"), nodes.into_pyarray(py))?;
     d.set_item(format!("{kind}_radius"), PyArray1::from_iter(py, lists.flat_map(|l| l.1.iter().copied())))?;
     Ok(())
