@@ -306,7 +306,13 @@ fn edge_cases() {
 /// diagonal (the cap of the section radius over the EDT, `vesselflow::radius`).
 #[test]
 fn an_all_foreground_block_is_a_solid_block_with_its_graph() {
-    for (shape, spacing) in [([24, 24, 24], [1.0; 3]), ([40, 12, 12], [1.0; 3]), ([40, 12, 12], [0.5, 1.0, 1.0])] {
+    for (shape, spacing) in [
+        ([24, 24, 24], [1.0; 3]),
+        ([40, 12, 12], [1.0; 3]),
+        ([40, 12, 12], [0.5, 1.0, 1.0]),
+        ([80, 12, 12], [0.5, 1.0, 1.0]),
+        ([40, 24, 24], [1.0, 0.5, 0.5]),
+    ] {
         let mask = Array3::<u8>::ones(shape);
         let s = run_with(mask.view(), spacing, Params::default());
         assert!(!s.is_empty(), "{shape:?}");
@@ -322,8 +328,10 @@ fn an_all_foreground_block_is_a_solid_block_with_its_graph() {
             }
             assert!(*r > 0.0 && *r <= inscribed, "{shape:?}: radius {r} vs inscribed {inscribed}");
         }
-        // The centreline of an elongated block runs along its long axis.
-        if shape[0] > 2 * shape[1] {
+        // The centreline of a block physically over twice as long as it is wide runs
+        // along its long axis.
+        let side = |d: usize| shape[d] as f64 * spacing[d];
+        if side(0) > 2.0 * side(1).max(side(2)) {
             let extent = |d: usize| {
                 let v = s.positions.iter().map(|p| p[d]);
                 v.clone().fold(f64::NEG_INFINITY, f64::max) - v.fold(f64::INFINITY, f64::min)
