@@ -125,9 +125,10 @@ pub struct Params {
     /// centre of mass of the mask.
     pub medial: bool,
     /// Last, remove the terminal spurs shorter than this many radii of the junction
-    /// they join, until none is left ([`crate::prune`]): at 1 a spur that ends inside
-    /// its parent's lumen, a knot beside the centreline rather than a vessel. 0 keeps
-    /// every spur.
+    /// they join, or whose nodes all lie within this many radii of another branch of
+    /// it, until none is left ([`crate::prune`]): at 1 a spur inside its parent's
+    /// lumen, a knot or a second rail beside the centreline rather than a vessel. 0
+    /// keeps every spur.
     pub prune_spurs: f64,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,

@@ -9,6 +9,15 @@
 //! junction. The criterion is scale-free: a bump on a thick vessel goes, a thin branch
 //! of the same length on a thin vessel stays.
 //!
+//! A second rail can be longer than the radius and still lie inside the lumen: it runs
+//! beside the vessel it left. So a terminal branch also counts as short, whatever its
+//! length, when every one of its nodes lies within `k` radii of another branch of its
+//! junction (closer to one of that branch's segments than `k` times the radius there,
+//! linear along the segment). A real side branch leaves its parent's lumen, so its far
+//! nodes fail the test; two vessels that merely touch keep their centrelines the sum of
+//! their radii apart. On a tube along the volume's diagonal (radius 3) the contraction
+//! left a rail of 12 voxels (4 radii) beside the centreline, joined at one end.
+//!
 //! Passes repeat until nothing changes, so a spur that becomes short only after its
 //! own spurs go is pruned too. Each pass removes at most `degree - 2` spurs per junction,
 //! shortest first (ties in the order the branches are traced: from every node of degree
@@ -18,7 +27,7 @@
 //! a graph after the fact (`VesselGraph.prune` in Python).
 
 use crate::graph::Skeleton;
-use crate::vec3::{norm, sub};
+use crate::vec3::{norm, projection, sub};
 use std::collections::BTreeMap;
 
 /// What a pruning keeps: `nodes[i]` and `edges[e]` for the input's node `i` and edge
@@ -35,7 +44,8 @@ pub struct Pruned {
 type Spur = (f64, Vec<usize>, Vec<usize>);
 
 /// Prune the spurs of the graph of `n` nodes and `edges` (node ids below `n`) shorter
-/// than `k` times their junction's radius (see the module); `positions` and `radii`
+/// than `k` times their junction's radius or inside the lumen of another branch of
+/// their junction (see the module); `positions` and `radii`
 /// per node, in the same units. `k` of 0 (or less, or NaN) prunes nothing.
 pub fn prune_spurs(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radii: &[f64], k: f64) -> Pruned {
     let mut kept = Pruned { nodes: vec![true; n], edges: vec![true; edges.len()], spurs: 0 };
@@ -90,57 +100,98 @@ pub fn prune_skeleton(skeleton: Skeleton, k: f64) -> Skeleton {
     }
 }
 
+/// The branch leaving `start` along `edge`: its nodes from `start` to the first node of
+/// degree other than 2 (or back at `start`), its edges and its length.
+fn trace(
+    start: usize,
+    edge: usize,
+    adjacency: &[Vec<(usize, usize)>],
+    positions: &[[f64; 3]],
+) -> (Vec<usize>, Vec<usize>, f64) {
+    let first = adjacency[start].iter().find(|&&(_, e)| e == edge).map_or(start, |&(w, _)| w);
+    let (mut nodes, mut path) = (vec![start], vec![edge]);
+    let (mut node, mut edge) = (first, edge);
+    let mut length = norm(sub(positions[first], positions[start]));
+    // Along degree-2 nodes, each at most once.
+    while adjacency[node].len() == 2 && node != start && path.len() <= positions.len() {
+        nodes.push(node);
+        let [(a, ea), (b, eb)] = [adjacency[node][0], adjacency[node][1]];
+        let next = if ea == edge { (b, eb) } else { (a, ea) };
+        length += norm(sub(positions[next.0], positions[node]));
+        (node, edge) = next;
+        path.push(edge);
+    }
+    nodes.push(node);
+    (nodes, path, length)
+}
+
+/// Whether every node of `spur` (the junction `j`'s branch along edge `first`, without
+/// `j`, checked in the given order) lies within `k` radii of another branch of `j`:
+/// closer to one of its segments than `k` times the radius there (linear along the
+/// segment). Such a spur runs inside the lumen of the vessel beside it, however long it
+/// is (a second rail).
+fn in_lumen(
+    j: usize,
+    first: usize,
+    spur: &[usize],
+    adjacency: &[Vec<(usize, usize)>],
+    positions: &[[f64; 3]],
+    radii: &[f64],
+    k: f64,
+) -> bool {
+    let rails: Vec<Vec<usize>> =
+        adjacency[j].iter().filter(|&&(_, e)| e != first).map(|&(_, e)| trace(j, e, adjacency, positions).0).collect();
+    spur.iter().all(|&i| {
+        let p = positions[i];
+        rails.iter().flat_map(|r| r.windows(2)).any(|w| {
+            let (t, d) = projection(p, positions[w[0]], positions[w[1]]);
+            d < k * (radii[w[0]] + t * (radii[w[1]] - radii[w[0]]))
+        })
+    })
+}
+
 /// One pass: the spurs to remove from the graph of `n` nodes and `edges`.
 fn spurs_of(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radii: &[f64], k: f64) -> Vec<Spur> {
-    let mut degree = vec![0usize; n];
     let mut adjacency: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
     for (e, &[a, b]) in edges.iter().enumerate() {
-        degree[a] += 1;
-        degree[b] += 1;
         adjacency[a].push((b, e));
         adjacency[b].push((a, e));
     }
+    let degree = |i: usize| adjacency[i].len();
     let mut used = vec![false; edges.len()];
-    // Per junction, its short spurs in the order they are traced.
-    let mut short: BTreeMap<usize, Vec<Spur>> = BTreeMap::new();
+    // Per junction, its spurs in the lumen in the order they are traced.
+    let mut inside: BTreeMap<usize, Vec<Spur>> = BTreeMap::new();
     for start in 0..n {
-        if degree[start] == 2 {
+        if degree(start) == 2 {
             continue;
         }
-        for &(first, edge) in &adjacency[start] {
+        for &(_, edge) in &adjacency[start] {
             if used[edge] {
                 continue;
             }
-            // Along degree-2 nodes to the next node of another degree (at most every edge).
-            let (mut nodes, mut path) = (vec![start], vec![edge]);
-            used[edge] = true;
-            let (mut node, mut edge) = (first, edge);
-            let mut length = norm(sub(positions[first], positions[start]));
-            while degree[node] == 2 && path.len() <= edges.len() {
-                nodes.push(node);
-                let [(a, ea), (b, eb)] = [adjacency[node][0], adjacency[node][1]];
-                let next = if ea == edge { (b, eb) } else { (a, ea) };
-                length += norm(sub(positions[next.0], positions[node]));
-                (node, edge) = next;
-                used[edge] = true;
-                path.push(edge);
+            let (nodes, path, length) = trace(start, edge, &adjacency, positions);
+            for &e in &path {
+                used[e] = true;
             }
-            nodes.push(node);
-            let (head, tail) = (nodes[0], node);
-            if (degree[head] > 2) == (degree[tail] > 2) {
+            let (head, tail) = (nodes[0], nodes[nodes.len() - 1]);
+            if (degree(head) > 2) == (degree(tail) > 2) {
                 continue;
             }
-            let junction = if degree[head] > 2 { head } else { tail };
-            if length < k * radii[junction] {
-                let others = nodes.into_iter().filter(|&i| i != junction).collect();
-                short.entry(junction).or_default().push((length, path, others));
+            let (junction, first) = if degree(head) > 2 { (head, path[0]) } else { (tail, path[path.len() - 1]) };
+            // Its nodes from the free end: a real branch fails the lumen test at the first.
+            let mut others: Vec<usize> = nodes.into_iter().filter(|&i| i != junction).collect();
+            if junction == head {
+                others.reverse();
+            }
+            if length < k * radii[junction] || in_lumen(junction, first, &others, &adjacency, positions, radii, k) {
+                inside.entry(junction).or_default().push((length, path, others));
             }
         }
     }
     let mut out = Vec::new();
-    for (junction, mut spurs) in short {
+    for (junction, mut spurs) in inside {
         spurs.sort_by(|a, b| a.0.total_cmp(&b.0));
-        out.extend(spurs.into_iter().take(degree[junction] - 2));
+        out.extend(spurs.into_iter().take(degree(junction) - 2));
     }
     out
 }
@@ -185,6 +236,33 @@ mod tests {
         let pruned = prune_spurs(6, &e, &p, &[3.0, 3.0, 1.0, 1.0, 3.0, 1.0], 1.0);
         assert_eq!(pruned.nodes, [true, true, false, false, true, false]);
         assert_eq!(pruned.spurs, 2);
+    }
+
+    /// A vessel along axis 2 (radius 2, nodes 0-1-2-3) with a junction at node 1 and a
+    /// second branch from it (nodes 4-5-6) `off` from the axis where it ends, 8 long.
+    fn railed(off: f64) -> Pruned {
+        let p = vec![
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 5.0],
+            [0.0, 0.0, 10.0],
+            [0.0, 0.0, 20.0],
+            [0.0, 0.6, 7.0],
+            [0.0, 0.6 + (off - 0.6) / 2.0, 10.0],
+            [0.0, off, 13.0],
+        ];
+        let e = [[0, 1], [1, 2], [2, 3], [1, 4], [4, 5], [5, 6]];
+        prune_spurs(7, &e, &p, &[2.0; 7], 1.0)
+    }
+
+    #[test]
+    fn a_second_rail_inside_the_lumen_goes_however_long() {
+        // Every node of the rail within a radius of the vessel beside it: pruned, though
+        // 8 long (4 radii of its junction).
+        let rail = railed(1.0);
+        assert_eq!(rail.spurs, 1);
+        assert_eq!(rail.nodes, [true, true, true, true, false, false, false]);
+        // A branch that leaves the lumen (its end 3 from the axis, radius 2) stays.
+        assert_eq!(railed(3.0).spurs, 0);
     }
 
     #[test]

@@ -348,12 +348,14 @@ def prune(graph: VesselGraph, min_length_over_radius: float = 2.0) -> VesselGrap
     A spur is a junction-endpoint branch (type 1); it is short when its length is
     below ``min_length_over_radius`` times the radius of the junction it joins, a
     scale-free criterion (a bump on a thick vessel is pruned, a real thin branch of
-    the same length on a thin vessel is kept). Passes repeat until nothing changes,
-    so a spur that becomes short only after its own spurs go is pruned too. Each pass
-    removes at most ``degree - 2`` spurs per junction, shortest first, so a junction
-    never becomes an endpoint: connected components, loops and endpoint-endpoint
-    branches are never removed, and a junction left with degree 2 becomes an ordinary
-    path node.
+    the same length on a thin vessel is kept), and also, whatever its length, when
+    every one of its nodes lies within ``min_length_over_radius`` radii of another
+    branch of its junction (a second rail running beside the vessel). Passes repeat
+    until nothing changes, so a spur that becomes short only after its own spurs go is
+    pruned too. Each pass removes at most ``degree - 2`` spurs per junction, shortest
+    first, so a junction never becomes an endpoint: connected components, loops and
+    endpoint-endpoint branches are never removed, and a junction left with degree 2
+    becomes an ordinary path node.
 
     Parameters
     ----------

@@ -309,7 +309,9 @@ class VesselGraph:
         Parameters
         ----------
         min_length_over_radius : float
-            A spur shorter than this many radii of the junction it joins goes.
+            A spur shorter than this many radii of the junction it joins goes, and
+            so does one whose nodes all lie within this many radii of another branch
+            of its junction.
 
         Returns
         -------

@@ -72,8 +72,10 @@ class Skeletonizer:
     prune_spurs : float in [0, 100]
         Last, remove the terminal spurs (junction-to-end branches) shorter than this many
         radii of their junction, until none is left, as :meth:`VesselGraph.prune` does
-        (not in the paper). At the default 1 only spurs that end inside their parent's
-        lumen go: knots beside the centreline, not vessels; 0 keeps every spur.
+        (not in the paper), and those whose nodes all lie within this many radii of
+        another branch of their junction. At the default 1 only spurs inside their
+        parent's lumen go: knots and second rails beside the centreline, not vessels;
+        0 keeps every spur.
         ``vesselflow.distributed`` prunes the merged graph.
     eps_gamma : float >= 1
         Anchoring factor of skeletal nodes.

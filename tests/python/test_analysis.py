@@ -347,6 +347,45 @@ def test_a_run_prunes_spurs_inside_their_junction_by_the_one_rule():
     assert found > 0
 
 
+def test_prune_removes_a_second_rail_inside_the_lumen_however_long():
+    """A branch that runs beside its junction's vessel, every node within that vessel's
+    radius, is no vessel whatever its length; one that leaves the lumen stays."""
+    trunk = [[0, 0, z] for z in (0.0, 5.0, 10.0, 20.0)]
+
+    def railed(off: float) -> VesselGraph:
+        rail = [[0, 0.6, 7.0], [0, (0.6 + off) / 2, 10.0], [0, off, 13.0]]
+        edges = [[0, 1], [1, 2], [2, 3], [1, 4], [4, 5], [5, 6]]
+        return VesselGraph(trunk + rail, [2.0] * 7, edges)
+
+    inside = railed(1.0).prune(1.0)  # the rail is 8 long: 4 radii of its junction
+    assert inside.info["pruned_branches"] == 1
+    np.testing.assert_array_equal(inside.positions, trunk)
+    assert railed(3.0).prune(1.0).info["pruned_branches"] == 0
+
+
+@pytest.mark.parametrize("radius", [1.5, 2.0, 2.5, 3.0, 4.0, 5.0])
+def test_straight_tubes_are_paths_in_every_direction(radius):
+    """A straight tube is one path with two ends, along an axis, a diagonal or oblique.
+    Before the lumen rule, the contraction left a second rail 12 voxels long beside the
+    centreline of the diagonal tube of radius 3 and of the oblique one of radius 4."""
+    from vesselflow import synth
+
+    for start, end in [
+        ((5, 5, 5), (42, 42, 42)),
+        ((5, 10, 3), (42, 30, 44)),
+        ((24, 3, 5), (24, 44, 40)),
+        ((3, 24, 24), (44, 24, 24)),
+        ((5, 40, 8), (40, 6, 38)),
+    ]:
+        mask, _ = synth.cylinder((48, 48, 48), radius, start=start, end=end)
+        graph = vesselflow.skeletonize(mask)
+        degrees = graph.degrees()
+        assert n_components(graph) == 1
+        assert graph.n_edges == graph.n_nodes - 1, (start, end)
+        assert degrees.max() == 2, (start, end, np.bincount(degrees))
+        assert int((degrees == 1).sum()) == 2
+
+
 # --- anisotropy -----------------------------------------------------------------------
 
 

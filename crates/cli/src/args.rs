@@ -104,8 +104,8 @@ fn parameter_help(name: &str) -> Option<&'static str> {
              branches meet (at most 0.6 radii)."
         }
         "prune_spurs" => {
-            "Last, remove terminal spurs shorter than this many radii (>= 0) of their junction, until none is \
-             left (0 keeps them all)."
+            "Last, remove terminal spurs shorter than this many radii (>= 0) of their junction, or lying within \
+             this many radii of another branch of it, until none is left (0 keeps them all)."
         }
         "eps_gamma" => "How many times (>= 1) harder than the others nodes already on the centreline are anchored.",
         "alpha" => {
