@@ -26,7 +26,6 @@ use crate::grid::Csr;
 use crate::inside::SEARCH_LIMIT;
 use crate::medial::Field;
 use crate::pipeline::Skeletonizer;
-use crate::prune::prune_skeleton;
 use crate::vec3::base_cell;
 use crate::volume::{check_spacing, Voxel};
 use ndarray::ArrayView3;
@@ -197,8 +196,8 @@ impl Skeletonizer {
         let mut out: Vec<[usize; 2]> = edges.into_iter().filter(|e| replaced.binary_search(e).is_err()).collect();
         out.extend(added);
         out.sort_unstable();
-        // Last, the short spurs, as a single run prunes its graph.
-        let out = prune_skeleton(Skeleton { positions, radii, edges: out, spacing, info }, self.params().prune_spurs);
+        // Last, the short spurs and the radii along the branches, as a single run ends.
+        let out = crate::pipeline::finish(Skeleton { positions, radii, edges: out, spacing, info }, self.params());
         crate::pipeline::check_skeleton(&out)?;
         Ok(out)
     }

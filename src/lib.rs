@@ -24,6 +24,7 @@
 //! | [`radius`] | node radii: cross-section area scaled by median over RMS chord length (robust to bubbles), or the plain area, or the EDT less a constant | — |
 //! | [`edges_inside`] | edges that cross background subdivided by nodes on the mask | — |
 //! | [`prune`] | terminal spurs shorter than their junction's radius removed (`prune_spurs`) | — |
+//! | [`smooth`] | radii smoothed along the branches, a median over a few voxels (`radius_smoothing`) | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |
 //! | [`blocks`] | chunked runs: the block phase and the merge of blocks into one graph | — |
@@ -73,6 +74,7 @@ pub mod prune;
 pub mod radius;
 pub mod resample;
 pub mod shapes;
+pub mod smooth;
 pub mod solver;
 pub mod sprouts;
 mod vec3;

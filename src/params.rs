@@ -130,6 +130,10 @@ pub struct Params {
     /// lumen, a knot or a second rail beside the centreline rather than a vessel. 0
     /// keeps every spur.
     pub prune_spurs: f64,
+    /// Last of all, smooth each node's radius along its branch: the median of the radii
+    /// within this many base cells of it along the branch, junctions excluded
+    /// ([`crate::smooth`]). 0 keeps every node's own measurement.
+    pub radius_smoothing: f64,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,
     /// Weight of the l2-norm Laplacian. Only the ratios alpha : beta : gamma matter; the
@@ -189,6 +193,7 @@ impl Default for Params {
             sprouts: true,
             medial: true,
             prune_spurs: 1.0,
+            radius_smoothing: 4.0,
             eps_gamma: 10.0,
             alpha: 0.25,
             beta: 0.5,
@@ -254,7 +259,7 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 25] = [
+    pub const NAMES: [&'static str; 26] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
@@ -265,6 +270,7 @@ impl Params {
         "sprouts",
         "medial",
         "prune_spurs",
+        "radius_smoothing",
         "eps_gamma",
         "alpha",
         "beta",
@@ -327,6 +333,7 @@ impl Params {
             }
             "coarse_cell" => self.coarse_cell = in_range(name, as_f64(name, v)?, 0.0, 4.0, false)?,
             "prune_spurs" => self.prune_spurs = in_range(name, as_f64(name, v)?, 0.0, 100.0, false)?,
+            "radius_smoothing" => self.radius_smoothing = in_range(name, as_f64(name, v)?, 0.0, 100.0, false)?,
             "stop_ratio" => self.stop_ratio = in_range(name, as_f64(name, v)?, 0.0, 1.0, true)?,
             "stall_ratio" => self.stall_ratio = in_range(name, as_f64(name, v)?, 0.0, 0.5, false)?,
             "area_reference" => {
@@ -398,6 +405,7 @@ impl Params {
             ("sprouts", Value::Bool(self.sprouts)),
             ("medial", Value::Bool(self.medial)),
             ("prune_spurs", Value::Float(self.prune_spurs)),
+            ("radius_smoothing", Value::Float(self.radius_smoothing)),
             ("eps_gamma", Value::Float(self.eps_gamma)),
             ("alpha", Value::Float(self.alpha)),
             ("beta", Value::Float(self.beta)),

@@ -22,6 +22,7 @@ use crate::precondition::{slab_axes, slab_order, Krylov, NormalMatrix};
 use crate::prune::prune_skeleton;
 use crate::radius::output_radii;
 use crate::resample;
+use crate::smooth::smooth_skeleton;
 use crate::solver::{self, SolveStats};
 use crate::sprouts::{sprout, Grown, Reach};
 use crate::vec3::base_cell;
@@ -490,9 +491,10 @@ impl Skeletonizer {
                 spacing,
                 info: RunInfo::default(),
             };
-            // Last, the short spurs; a chunked run's blocks leave them to the end of
-            // the merge, whose graph their nodes' voxels build.
-            let out = if core.is_none() { prune_skeleton(out, p.prune_spurs) } else { out };
+            // Last, the short spurs and the radii along the branches; a chunked run's
+            // blocks leave them to the end of the merge, whose graph their nodes'
+            // voxels build.
+            let out = if core.is_none() { finish(out, p) } else { out };
             Ok((out, sprouts))
         })?;
         stop.check()?;
@@ -557,6 +559,13 @@ fn check_shape<T: Voxel>(mask: ArrayView3<'_, T>) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The output's last steps, on a single run's graph and on a chunked run's merged one:
+/// the short spurs pruned ([`crate::prune`]), then the radii smoothed along the
+/// branches that are left ([`crate::smooth`]).
+pub(crate) fn finish(out: Skeleton, p: &Params) -> Skeleton {
+    smooth_skeleton(prune_skeleton(out, p.prune_spurs), p.radius_smoothing)
 }
 
 /// Check the output graph before it is returned: positions finite, radii finite and

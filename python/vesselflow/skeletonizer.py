@@ -77,6 +77,13 @@ class Skeletonizer:
         parent's lumen go: knots and second rails beside the centreline, not vessels;
         0 keeps every spur.
         ``vesselflow.distributed`` prunes the merged graph.
+    radius_smoothing : float in [0, 100]
+        Last of all, each node's radius becomes the median of the radii within this many
+        base cells of it along its branch (not in the paper): junctions keep theirs and do
+        not enter the median. It takes out the voxel grid's noise of the per-node
+        measurement; narrowings and bulges shorter than about this length go with it. 0
+        keeps every node's own measurement. ``vesselflow.distributed`` smooths the merged
+        graph.
     eps_gamma : float >= 1
         Anchoring factor of skeletal nodes.
     alpha, beta : float >= 0
@@ -150,6 +157,7 @@ class Skeletonizer:
         sprouts: bool = True,
         medial: bool = True,
         prune_spurs: float = 1.0,
+        radius_smoothing: float = 4.0,
         eps_gamma: float = 10.0,
         alpha: float = 0.25,
         beta: float = 0.5,

@@ -27,6 +27,7 @@ def test_core_lists_every_method_parameter_with_its_default():
         "sprouts": True,
         "medial": True,
         "prune_spurs": 1.0,
+        "radius_smoothing": 4.0,
         "eps_gamma": 10.0,
         "alpha": 0.25,
         "beta": 0.5,

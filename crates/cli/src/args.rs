@@ -107,6 +107,10 @@ fn parameter_help(name: &str) -> Option<&'static str> {
             "Last, remove terminal spurs shorter than this many radii (>= 0) of their junction, or lying within \
              this many radii of another branch of it, until none is left (0 keeps them all)."
         }
+        "radius_smoothing" => {
+            "Last of all, each node's radius becomes the median of the radii within this many base cells (>= 0) of \
+             it along its branch, junctions excluded (0 keeps every node's own measurement)."
+        }
         "eps_gamma" => "How many times (>= 1) harder than the others nodes already on the centreline are anchored.",
         "alpha" => {
             "Weight (>= 0) of the smoothing (l2-norm) Laplacian; only the ratios of alpha, beta and gamma matter."
