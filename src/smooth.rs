@@ -48,14 +48,15 @@ pub fn smooth_radii(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radi
                 return radii[i];
             }
             // Both ways along the branch, through nodes of degree 1 or 2, each node at
-            // most once (a loop without junctions shorter than twice the window is met
-            // from both sides).
+            // most once: on a loop without junctions shorter than twice the window the
+            // second walk stops where it meets the first one's far end.
             let mut seen = vec![i];
+            let mut far = i;
             for &first in &adjacency[i] {
                 let (mut prev, mut cur) = (i, first);
                 let mut arc = norm(sub(positions[cur], positions[prev]));
                 for _ in 0..n {
-                    if arc > window || adjacency[cur].len() > 2 || seen.contains(&cur) {
+                    if arc > window || adjacency[cur].len() > 2 || cur == i || cur == far {
                         break;
                     }
                     seen.push(cur);
@@ -63,6 +64,7 @@ pub fn smooth_radii(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radi
                     arc += norm(sub(positions[next], positions[cur]));
                     (prev, cur) = (cur, next);
                 }
+                far = seen[seen.len() - 1];
             }
             let mut values: Vec<f64> = seen.iter().map(|&j| radii[j]).collect();
             median(&mut values)
