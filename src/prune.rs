@@ -125,22 +125,12 @@ fn trace(
     (nodes, path, length)
 }
 
-/// Whether every node of `spur` (the junction `j`'s branch along edge `first`, without
-/// `j`, checked in the given order) lies within `k` radii of another branch of `j`:
-/// closer to one of its segments than `k` times the radius there (linear along the
-/// segment). Such a spur runs inside the lumen of the vessel beside it, however long it
-/// is (a second rail).
-fn in_lumen(
-    j: usize,
-    first: usize,
-    spur: &[usize],
-    adjacency: &[Vec<(usize, usize)>],
-    positions: &[[f64; 3]],
-    radii: &[f64],
-    k: f64,
-) -> bool {
-    let rails: Vec<Vec<usize>> =
-        adjacency[j].iter().filter(|&&(_, e)| e != first).map(|&(_, e)| trace(j, e, adjacency, positions).0).collect();
+/// Whether every node of `spur` (checked in the given order) lies within `k` radii of
+/// one of the `rails` (the other branches of its junction, as node lists): closer to one
+/// of their segments than `k` times the radius there (linear along the segment). Such
+/// a spur runs inside the lumen of the vessel beside it, however long it is (a second
+/// rail).
+fn in_lumen(spur: &[usize], rails: &[&[usize]], positions: &[[f64; 3]], radii: &[f64], k: f64) -> bool {
     spur.iter().all(|&i| {
         let p = positions[i];
         rails.iter().flat_map(|r| r.windows(2)).any(|w| {
@@ -158,9 +148,10 @@ fn spurs_of(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radii: &[f64
         adjacency[b].push((a, e));
     }
     let degree = |i: usize| adjacency[i].len();
+    // Every branch once, in tracing order, and the branches at each junction.
     let mut used = vec![false; edges.len()];
-    // Per junction, its spurs in the lumen in the order they are traced.
-    let mut inside: BTreeMap<usize, Vec<Spur>> = BTreeMap::new();
+    let mut branches = vec![];
+    let mut at: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
     for start in 0..n {
         if degree(start) == 2 {
             continue;
@@ -174,18 +165,38 @@ fn spurs_of(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radii: &[f64
                 used[e] = true;
             }
             let (head, tail) = (nodes[0], nodes[nodes.len() - 1]);
-            if (degree(head) > 2) == (degree(tail) > 2) {
-                continue;
+            for end in [head, tail] {
+                if degree(end) > 2 {
+                    let list = at.entry(end).or_default();
+                    // A loop from a junction back to it is one of its branches once.
+                    if list.last() != Some(&branches.len()) {
+                        list.push(branches.len());
+                    }
+                }
             }
-            let (junction, first) = if degree(head) > 2 { (head, path[0]) } else { (tail, path[path.len() - 1]) };
-            // Its nodes from the free end: a real branch fails the lumen test at the first.
-            let mut others: Vec<usize> = nodes.into_iter().filter(|&i| i != junction).collect();
-            if junction == head {
-                others.reverse();
-            }
-            if length < k * radii[junction] || in_lumen(junction, first, &others, &adjacency, positions, radii, k) {
-                inside.entry(junction).or_default().push((length, path, others));
-            }
+            branches.push((nodes, path, length));
+        }
+    }
+    // Per junction, its spurs in the lumen in the order they are traced.
+    let mut inside: BTreeMap<usize, Vec<Spur>> = BTreeMap::new();
+    for (b, (nodes, path, length)) in branches.iter().enumerate() {
+        let (head, tail) = (nodes[0], nodes[nodes.len() - 1]);
+        if (degree(head) > 2) == (degree(tail) > 2) {
+            continue;
+        }
+        let junction = if degree(head) > 2 { head } else { tail };
+        // Its nodes from the free end: a real branch fails the lumen test at the first.
+        let mut others: Vec<usize> = nodes.iter().copied().filter(|&i| i != junction).collect();
+        if junction == head {
+            others.reverse();
+        }
+        let short = *length < k * radii[junction] || {
+            let rails: Vec<&[usize]> =
+                at[&junction].iter().filter(|&&r| r != b).map(|&r| branches[r].0.as_slice()).collect();
+            in_lumen(&others, &rails, positions, radii, k)
+        };
+        if short {
+            inside.entry(junction).or_default().push((*length, path.clone(), others));
         }
     }
     let mut out = Vec::new();

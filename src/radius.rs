@@ -495,11 +495,10 @@ fn chord_radius<T: Voxel>(
         let a = std::f64::consts::PI * k as f64 / CHORD_DIRECTIONS as f64;
         std::array::from_fn(|d| a.cos() * u[d] + a.sin() * v[d])
     });
-    // How much more coarsely than the finest spacing each direction is sampled: the
-    // width of a voxel along it beyond that of a cube of the finest spacing.
-    let finest = c;
+    // How much more coarsely than the finest spacing (the base cell `c`) each direction
+    // is sampled: the width of a voxel along it beyond that of a cube of side `c`.
     let excess: [f64; CHORD_DIRECTIONS] =
-        std::array::from_fn(|k| (0..3).map(|d| directions[k][d].abs() * (spacing[d] - finest)).sum());
+        std::array::from_fn(|k| (0..3).map(|d| directions[k][d].abs() * (spacing[d] - c)).sum());
     // (length, from one of the middle planes, the direction's excess)
     let mut chords = Vec::with_capacity(CHORD_DIRECTIONS * CHORD_PLANES);
     for j in 0..CHORD_PLANES {
@@ -542,7 +541,7 @@ fn chord_radius<T: Voxel>(
     // that thick slices flatten (a vessel lying in the plane of a two-photon stack) would
     // otherwise lose all its wide chords to its short ones.
     let least = excess.iter().copied().fold(f64::INFINITY, f64::min);
-    let mut fine: Vec<f64> = chords.iter().filter(|c| c.2 <= least + finest).map(|c| c.0).collect();
+    let mut fine: Vec<f64> = chords.iter().filter(|x| x.2 <= least + c).map(|x| x.0).collect();
     fine.sort_by(f64::total_cmp);
     let reference = quantile_of(if fine.is_empty() { &all } else { &fine }, TRIM_REFERENCE);
     let limit = reference + coarse;
