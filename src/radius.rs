@@ -57,7 +57,13 @@
 //!   a vessel lying in the plane of a stack of thick slices, flattened to a band one
 //!   slice thick, lost all its wide chords to its short ones (a band 10.2 µm wide in
 //!   5 µm slices: radius 2.92 µm instead of 3.58, below a band 7.8 wide). Isotropic
-//!   grids are unaffected. The radius is the section radius scaled by the kept chords' `quantile`
+//!   grids are unaffected. A vessel that widens along its length (an aneurysm, the
+//!   carotid bulb) has narrower outer planes, which set the reference, and lost its
+//!   middle planes' chords to the trim (a bulge from radius 5 to 10 read 5.7 at its
+//!   peak): a plane whose chords agree within the coarsest cell is round, nothing sticks
+//!   out of it, and when the vessel is wide (reference at least `WIDE` coarsest cells,
+//!   past what a blob of voxel-scale noise engulfs) it keeps its chords whatever their
+//!   length; the typical chord is then taken from the middle planes alone. The radius is the section radius scaled by the kept chords' `quantile`
 //!   over the root mean square of all chords of the middle three planes (the slab of
 //!   the area): `r = sqrt(A / π) · L_q(kept) / sqrt(mean L²)`. On a round section the
 //!   chords are all about equal and the factor is 1, so the area's freedom from bias
@@ -461,6 +467,11 @@ const BISECTIONS: usize = 5;
 /// chords but a few, so that one chord cut short by the grid does not set it.
 const TRIM_REFERENCE: f64 = 0.1;
 
+/// The narrowest chord (the trim's reference), in coarsest cells, from which a round
+/// plane keeps its chords past the trim: a vessel that wide is not engulfed by a blob of
+/// voxel-scale noise.
+const WIDE: f64 = 6.0;
+
 /// Distance from `q` along the unit `w` to where the interpolated mask falls below
 /// one half, at most `reach` (`q` itself is inside). Every point closer to `q` than
 /// `clear` is known to be inside (see [`clear_of`]): the march starts past them.
@@ -574,7 +585,7 @@ fn chord_radius<T: Voxel>(
                 bound[k] = bound[k].max(s + ahead);
                 bound[k + CHORD_DIRECTIONS] = bound[k + CHORD_DIRECTIONS].max(behind - s);
             }
-            chords.push((ahead + behind, middle, coarser));
+            chords.push((ahead + behind, middle, coarser, j));
         }
     }
     let middle: Vec<f64> = chords.iter().filter(|c| c.1).map(|c| c.0).collect();
@@ -596,7 +607,35 @@ fn chord_radius<T: Voxel>(
     fine.sort_by(f64::total_cmp);
     let reference = quantile_of(if fine.is_empty() { &all } else { &fine }, TRIM_REFERENCE);
     let limit = reference + coarse;
-    let kept: Vec<f64> = all.into_iter().take_while(|&l| l <= limit).collect();
+    // A plane whose chords all agree within the coarsest cell is round: nothing sticks
+    // out of it. When the vessel is wide (its narrowest chords `WIDE` coarsest cells or
+    // more, past what a blob of voxel-scale noise engulfs), such a plane's chords are the
+    // vessel's width there, however far they exceed the reference: a vessel that widens
+    // along its length (an aneurysm, the carotid bulb) keeps them. The planes then differ
+    // in width, and the typical chord is taken from the middle planes alone, the
+    // population of the root mean square it is set against.
+    let mut plane_limit = [limit; CHORD_PLANES];
+    let mut widens = false;
+    for (j, lim) in plane_limit.iter_mut().enumerate() {
+        let (lo, hi) = chords
+            .iter()
+            .filter(|x| x.3 == j)
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| (lo.min(x.0), hi.max(x.0)));
+        if hi > limit && hi - lo <= coarse && reference >= WIDE * coarse {
+            *lim = hi;
+            widens = true;
+        }
+    }
+    let kept_of = |middle_only: bool| -> Vec<f64> {
+        let mut kept: Vec<f64> =
+            chords.iter().filter(|x| (x.1 || !middle_only) && x.0 <= plane_limit[x.3]).map(|x| x.0).collect();
+        kept.sort_by(f64::total_cmp);
+        kept
+    };
+    let mut kept = kept_of(widens);
+    if kept.is_empty() {
+        kept = kept_of(false);
+    }
     let typical = quantile_of(&kept, quantile.clamp(0.0, 1.0));
     // A voxel's width along a half-direction is the margin: a vessel's own voxel centres
     // lie within about a cell of where its chords cross the wall.
