@@ -39,3 +39,30 @@ def test_a_straight_tube_of_radius_5_has_its_radius_within_3_percent(
     assert inner.sum() >= 5
     median = float(np.median(graph.radii[inner]))
     assert median == pytest.approx(5.0, rel=0.03)
+
+
+@pytest.mark.parametrize("oblique", [False, True])
+def test_a_parallel_vessel_across_a_gap_leaves_the_radius_alone(oblique: bool) -> None:
+    # Two tubes of radius 3 whose walls are two background voxels apart (an artery beside
+    # its vein, a dense capillary bed): the section's disc reaches into the neighbour,
+    # whose voxels the area counted (+18 % along an axis, +23 % oblique) before the chords'
+    # outline bounded it.
+    shape, shift = (48, 40, 40), np.array([0.0, 0.0, 7.0])
+    start, end = np.array([5.0, 20.0, 14.0]), np.array([42.0, 20.0 + 8.0 * oblique, 14.0])
+    alone, _ = synth.cylinder(shape, radius=3.0, start=start, end=end)
+    other, _ = synth.cylinder(shape, radius=3.0, start=start + shift, end=end + shift)
+    assert not (alone & other).any()
+    pair = vesselflow.skeletonize(alone | other)
+    single = vesselflow.skeletonize(alone)
+    assert pair.n_nodes > 0
+    assert single.n_nodes > 0
+
+    def inner(p: np.ndarray) -> np.ndarray:
+        # Nodes a tube's radius and more from its caps.
+        return (p[:, 0] > 10.0) & (p[:, 0] < 37.0)
+
+    # The first tube's nodes in the pair (nearer its axis than the other's).
+    nearer = pair.positions[:, 2] < 14.0 + shift[2] / 2
+    got = np.median(pair.radii[nearer & inner(pair.positions)])
+    want = np.median(single.radii[inner(single.positions)])
+    assert abs(got / want - 1.0) <= 0.02, (got, want)
