@@ -63,7 +63,8 @@
 //!   peak): a plane whose chords agree within the coarsest cell is round, nothing sticks
 //!   out of it, and when the vessel is wide (reference at least `WIDE` coarsest cells,
 //!   past what a blob of voxel-scale noise engulfs) it keeps its chords whatever their
-//!   length; the typical chord is then taken from the middle planes alone. The radius is the section radius scaled by the kept chords' `quantile`
+//!   length; the typical chord is then taken from the middle planes alone.
+//!   The radius is the section radius scaled by the kept chords' `quantile`
 //!   over the root mean square of all chords of the middle three planes (the slab of
 //!   the area): `r = sqrt(A / π) · L_q(kept) / sqrt(mean L²)`. On a round section the
 //!   chords are all about equal and the factor is 1, so the area's freedom from bias
@@ -554,7 +555,7 @@ fn chord_radius<T: Voxel>(
     // is sampled: the width of a voxel along it beyond that of a cube of side `c`.
     let excess: [f64; CHORD_DIRECTIONS] =
         std::array::from_fn(|k| (0..3).map(|d| directions[k][d].abs() * (spacing[d] - c)).sum());
-    // (length, from one of the middle planes, the direction's excess)
+    // (length, from one of the middle planes, the direction's excess, the plane)
     let mut chords = Vec::with_capacity(CHORD_DIRECTIONS * CHORD_PLANES);
     // The outline of the middle planes' chords (see `Outline`): the farthest reach from
     // the plane's centre along each half-direction, `+w` at `k`, `-w` at `k + CHORD_DIRECTIONS`.
