@@ -6,7 +6,10 @@
 //! radius inside the mask. So each degree-1 node is moved outward, along the
 //! direction of the last stretch of its branch, to one radius (its output radius)
 //! inside the point where that line leaves the mask; a node already that far out
-//! stays. The search along the line is capped at `3 r + 4 c`.
+//! stays. Where the line leaves the array rather than the vessel, the array's face cuts
+//! the vessel and its centreline runs on to the face: the end goes to the last point
+//! inside (within the box of voxel centres). The search along the line is capped at
+//! `3 r + 4 c`.
 //!
 //! A straight line misses where the vessel curves or where two vessels run side by
 //! side into one protrusion of the mask (a leaf and an anastomosis back from it, a
@@ -96,12 +99,25 @@ pub fn extend_ends<T: Voxel>(
     mask: ArrayView3<'_, T>,
     spacing: [f64; 3],
 ) -> Vec<[f64; 3]> {
+    let (n0, n1, n2) = mask.dim();
+    let shape = [n0, n1, n2];
     move_ends(g, positions, radii, &mask, spacing, |p, u, r, c| {
         let h = c / STEPS_PER_CELL;
         let steps = ((3.0 * r + 4.0 * c) / h).ceil() as usize;
         let at = |t: f64| [p[0] + t * u[0], p[1] + t * u[1], p[2] + t * u[2]];
         // The last inside sample; the boundary is half a step beyond it.
         let last = (1..=steps).take_while(|&k| inside(&mask, at(k as f64 * h), spacing)).last().unwrap_or(0);
+        if last < steps && voxel_of(at((last + 1) as f64 * h), spacing, shape).is_none() {
+            // The line leaves the array, not the vessel: the array's face cuts the
+            // vessel, whose centreline runs on to the face. The end goes to the last
+            // sample inside, kept within the voxel centres' box.
+            let face = (0..3)
+                .filter(|&d| u[d] != 0.0)
+                .map(|d| if u[d] > 0.0 { ((shape[d] - 1) as f64 * spacing[d] - p[d]) / u[d] } else { -p[d] / u[d] })
+                .fold(f64::INFINITY, f64::min);
+            let t = (last as f64 * h).min(face);
+            return (t > 0.0).then(|| at(t));
+        }
         let t = (last as f64 + 0.5) * h - r;
         (t > 0.0).then(|| at(t))
     })
@@ -282,6 +298,25 @@ mod tests {
         // The search is capped at 3 r + 4 c: radius 1 moves node 2 by at most 7 - 1.
         let out = extend_ends(&g, &p, &[0.5, 0.5, 1.0], mask.view(), [1.0; 3]);
         assert!(out[2][2] <= 16.0 + 0.25, "{:?}", out[2]);
+    }
+
+    #[test]
+    fn an_end_whose_vessel_the_array_face_cuts_goes_to_the_face() {
+        // A bar of radius 3 along axis 2 from the array's face (k = 0) to k = 16; a path
+        // from k = 8 to k = 12 (radius 3 at both ends).
+        let mut mask = Array3::<u8>::zeros((9, 9, 30));
+        for ((i, j, k), v) in mask.indexed_iter_mut() {
+            let (y, x) = (i as f64 - 4.0, j as f64 - 4.0);
+            *v = u8::from(k <= 16 && y * y + x * x <= 9.0);
+        }
+        let g = Csr::from_sorted_edges(3, &[(0, 1), (1, 2)]);
+        let p = [[4.0, 4.0, 8.0], [4.0, 4.0, 10.0], [4.0, 4.0, 12.0]];
+        let out = extend_ends(&g, &p, &[3.0; 3], mask.view(), [1.0; 3]);
+        // Node 0: the vessel runs on past the face, and so does its centreline; the end
+        // goes to the face's voxel centres (it stopped a radius short, at 2.5).
+        assert_eq!(out[0], [4.0, 4.0, 0.0]);
+        // Node 2: the bar ends inside the array (at 16.5): one radius inside, 13.5.
+        assert!((out[2][2] - 13.5).abs() <= 0.25, "{:?}", out[2]);
     }
 
     #[test]
