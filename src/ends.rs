@@ -313,7 +313,7 @@ mod tests {
         let p = [[4.0, 4.0, 8.0], [4.0, 4.0, 10.0], [4.0, 4.0, 12.0]];
         let out = extend_ends(&g, &p, &[3.0; 3], mask.view(), [1.0; 3]);
         // Node 0: the vessel runs on past the face, and so does its centreline; the end
-        // goes to the face's voxel centres (it stopped a radius short, at 2.5).
+        // goes to the face's voxel centres (it stopped about a radius short, at 2.6).
         assert_eq!(out[0], [4.0, 4.0, 0.0]);
         // Node 2: the bar ends inside the array (at 16.5): one radius inside, 13.5.
         assert!((out[2][2] - 13.5).abs() <= 0.25, "{:?}", out[2]);
