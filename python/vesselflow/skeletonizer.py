@@ -411,8 +411,8 @@ def skeletonize(
     >>> int(graph.degrees().max())  # a straight tube gives a path
     2
     >>> length = graph.branches()["branch-distance"].sum()  # in the units of spacing
-    >>> bool(30 < length < 39)  # 39 between the end voxels; ends stop about a radius inside
-    True
+    >>> round(float(length), 3)  # through two faces of the array, and so is its centreline
+    39.0
     >>> xyz = vesselflow.skeletonize(mask, spacing=(1.0, 0.5, 0.5), coordinates="xyz")
     >>> xyz.spacing.tolist()  # x, y, z: the columns of xyz.positions
     [0.5, 0.5, 1.0]
