@@ -187,6 +187,9 @@ fn section_area<T: Voxel>(
     // the slab's disc, both widened by a voxel, far more than any rounding of the tests
     // below: the voxels left out are those the tests turn away, and the sums add the
     // same terms in the same order.
+    // The outline's line runs along `t` too: a voxel's offset from it is its offset from
+    // the line through `p` plus `p`'s own.
+    let shift = outline.map(|o| (o, o.offset(p)));
     let pad = coarsest(spacing);
     let ball = (middle.abs() + half).hypot(reach) + pad;
     let (slab_lo, slab_hi) = (middle - half - pad, middle + half + pad);
@@ -223,7 +226,7 @@ fn section_area<T: Voxel>(
                     continue;
                 }
                 let off = [d[0] - along * t[0], d[1] - along * t[1], d[2] - along * t[2]];
-                let admitted = || outline.is_none_or(|o| o.admits(std::array::from_fn(|a| p[a] + d[a])));
+                let admitted = || shift.is_none_or(|(o, s)| o.admits(std::array::from_fn(|a| off[a] + s[a])));
                 if dot(off, off) <= reach * reach && admitted() {
                     weight += w;
                     for a in 0..3 {
@@ -286,11 +289,17 @@ struct Outline {
 }
 
 impl Outline {
-    /// Whether the point `x` (physical units) lies within the outline.
-    fn admits(&self, x: [f64; 3]) -> bool {
+    /// The offset of the point `x` (physical units) from the outline's line, orthogonal
+    /// to it.
+    fn offset(&self, x: [f64; 3]) -> [f64; 3] {
         let d = sub(x, self.origin);
         let along = dot(d, self.t);
-        let off: [f64; 3] = std::array::from_fn(|a| d[a] - along * self.t[a]);
+        std::array::from_fn(|a| d[a] - along * self.t[a])
+    }
+
+    /// Whether a point at the orthogonal offset `off` from the outline's line lies
+    /// within the outline.
+    fn admits(&self, off: [f64; 3]) -> bool {
         let r2 = dot(off, off);
         if r2 <= self.inner {
             return true;
@@ -594,8 +603,6 @@ fn chord_radius<T: Voxel>(
         return None;
     }
     let rms = (middle.iter().map(|l| l * l).sum::<f64>() / middle.len() as f64).sqrt();
-    let mut all: Vec<f64> = chords.iter().map(|c| c.0).collect();
-    all.sort_by(f64::total_cmp);
     // Chords longer than the reference by more than the coarsest cell cross something
     // the vessel does not hold (a bubble, a branch's mouth): they are left out. The
     // reference comes from the chords of the most finely sampled directions (within a
@@ -605,8 +612,11 @@ fn chord_radius<T: Voxel>(
     // otherwise lose all its wide chords to its short ones.
     let least = excess.iter().copied().fold(f64::INFINITY, f64::min);
     let mut fine: Vec<f64> = chords.iter().filter(|x| x.2 <= least + c).map(|x| x.0).collect();
+    if fine.is_empty() {
+        fine = chords.iter().map(|x| x.0).collect();
+    }
     fine.sort_by(f64::total_cmp);
-    let reference = quantile_of(if fine.is_empty() { &all } else { &fine }, TRIM_REFERENCE);
+    let reference = quantile_of(&fine, TRIM_REFERENCE);
     let limit = reference + coarse;
     // A plane whose chords all agree within the coarsest cell is round: nothing sticks
     // out of it. When the vessel is wide (its narrowest chords `WIDE` coarsest cells or
