@@ -10,10 +10,11 @@
 //!   maximum of the distance transform in that cross-section;
 //! - then a junction (degree ≥ 3) moves to where its branches' centrelines meet, each
 //!   branch the least-squares line through its nodes within [`REACH`] radii, from the
-//!   first one on, weighted toward the junction (nodes already moved to the ridge; a line through the stretch beyond the
-//!   junction's own ball, as before, points where a curving branch goes, not where it
-//!   leaves: 32 % of the tuning forests' true junctions had no graph junction within
-//!   σ = 2 voxels with it, 26 % now, thinning 19 %): when two branches run nearly straight through
+//!   first one on, weighted toward the junction (nodes already moved to the ridge; a
+//!   line through the stretch beyond the junction's own ball, as before, points where a
+//!   curving branch goes, not where it leaves: 32 % of the tuning forests' true
+//!   junctions had no graph junction within σ = 2 voxels with it, 26 % then, thinning
+//!   19 %): when two branches run nearly straight through
 //!   ([`STRAIGHT`]) they are the parent vessel, one line, and the junction is the point
 //!   on the parent's axis nearest (least squares) to the other branches' lines (a thin
 //!   child's line from its first node outside the parent's tube, [`THIN_CHILD`]);
