@@ -54,7 +54,7 @@
 use crate::error::Result;
 use crate::grid::Csr;
 use crate::inside::voxel_of;
-use crate::vec3::{base_cell, cross, dot, norm, sub};
+use crate::vec3::{base_cell, cross, dot, norm, sub, unit};
 use crate::volume::{edt_squared_rows, foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use rayon::prelude::*;
@@ -568,9 +568,7 @@ fn meeting_point(
 
 /// The line from `a` through `b`: `a` and the unit direction; `None` when they coincide.
 fn two_point_line(a: [f64; 3], b: [f64; 3]) -> Option<([f64; 3], [f64; 3])> {
-    let t = sub(b, a);
-    let n = norm(t);
-    (n > 0.0).then(|| (a, t.map(|x| x / n)))
+    unit(sub(b, a)).map(|t| (a, t))
 }
 
 /// The weighted least-squares line through the nodes `stretch` (at `curves`, three or
@@ -600,12 +598,10 @@ fn fitted_line(curves: &[[f64; 3]], stretch: &[usize]) -> Option<([f64; 3], [f64
     }
     let mut t = start;
     for _ in 0..AXIS_ITERATIONS {
-        let next: [f64; 3] = std::array::from_fn(|row| dot(scatter[row], t));
-        let n = norm(next);
-        if n.is_nan() || n <= 0.0 {
+        let Some(next) = unit(std::array::from_fn(|row| dot(scatter[row], t))) else {
             return Some((centre, start));
-        }
-        t = next.map(|x| x / n);
+        };
+        t = next;
     }
     let t = if dot(t, start) < 0.0 { t.map(|x| -x) } else { t };
     Some((centre, t))

@@ -267,7 +267,8 @@ fn section_radius<T: Voxel>(
     let (_, h, reach) = sizes(spacing, r0);
     // A whole number of the coarsest spacing: along a grid axis the tent's weights then
     // sum to the same wherever the node sits between two slices (see the module).
-    let h = (h / coarsest(spacing)).ceil() * coarsest(spacing);
+    let coarse = coarsest(spacing);
+    let h = (h / coarse).ceil() * coarse;
     let slab = if end { (h, h) } else { (0.0, h) };
     let (_, centre) = section_area(mask, spacing, p, t, slab, reach, outline);
     let (area, _) = section_area(mask, spacing, centre, t, slab, reach, outline);
