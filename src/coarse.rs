@@ -23,10 +23,11 @@
 //! touches a single other cell is merged into it ([`absorb_leaves`]).
 
 use crate::decimate::{mean_and_largest, members_by_cluster, quotient, NodeGraph};
+use crate::grid::number_by_first;
 use crate::grid::GridGraph;
 use crate::vec3::coarsest;
-use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
+use uf_rush::UFRush;
 
 /// Cap on the rounds of pointer doubling that find every voxel's centre: 2⁶⁴ steps of
 /// the climb, more than any graph's nodes.
@@ -91,30 +92,24 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
         let r = radii[centre[i] as usize].min(radii[centre[j] as usize]);
         d2 < r * r
     };
-    // Cells: connected pieces of a box, numbered by their first voxel.
-    let mut uf = UnionFind::<u32>::new(n);
-    for i in 0..n {
+    // Cells: connected pieces of a box, numbered by their first voxel (whatever the
+    // order in which the threads joined them: only the pieces are read).
+    let uf = UFRush::new(n);
+    (0..n).into_par_iter().for_each(|i| {
         let bi = box_of(i);
         for &j in g.neighbours(i) {
             let j = j as usize;
             if j > i && bi == box_of(j) && same_vessel(i, j) {
-                uf.union(i as u32, j as u32);
+                uf.unite(i, j);
             }
         }
-    }
-    let mut map = vec![u32::MAX; n];
-    let mut cells = 0u32;
-    for i in 0..n {
-        let root = uf.find_mut(i as u32) as usize;
-        if map[root] == u32::MAX {
-            map[root] = cells;
-            cells += 1;
-        }
-        map[i] = map[root];
-    }
+    });
+    let root: Vec<u32> = (0..n).into_par_iter().map(|i| uf.find(i) as u32).collect();
     drop(uf);
+    let (mut map, cells) = number_by_first(&root);
+    drop(root);
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.
-    let mut wide = vec![false; cells as usize];
+    let mut wide = vec![false; cells];
     for i in 0..n {
         wide[map[i] as usize] |= has_cells(cell, radii[centre[i] as usize], coarsest);
     }

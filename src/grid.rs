@@ -11,6 +11,7 @@ use ndarray::{ArrayView3, Axis};
 use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
 use std::sync::Mutex;
+use uf_rush::UFRush;
 
 /// Rows per parallel task when a pass walks the graph row by row. Fixed, so every
 /// parallel reduction is split the same way whatever the thread count.
@@ -289,6 +290,24 @@ fn with_extra<I: Iterator<Item = u32>>(
     Ok(Csr { offsets, targets })
 }
 
+/// The sets of a union-find numbered 0, 1, ... in the order of their first element:
+/// `root[i]` is the representative of `i`'s set (`root[r] == r` for a representative
+/// `r`). The numbering depends only on the partition, not on which element represents a
+/// set. Returns every element's number and the number of sets.
+pub(crate) fn number_by_first(root: &[u32]) -> (Vec<u32>, usize) {
+    let mut number = vec![u32::MAX; root.len()];
+    let mut sets = 0u32;
+    for (i, &r) in root.iter().enumerate() {
+        // `number[r]` is written when the set is first met, at or before `i = r`.
+        if number[r as usize] == u32::MAX {
+            number[r as usize] = sets;
+            sets += 1;
+        }
+        number[i] = number[r as usize];
+    }
+    (number, sets as usize)
+}
+
 /// Build the initial grid graph of `mask` (docs/method.md §1).
 ///
 /// Edges join face neighbours (`connectivity = 6`; 18 or 26 on request). With
@@ -374,15 +393,17 @@ pub fn build<T: Voxel>(
     // pairs would (pairs already in one piece never bridge, and pieces only grow).
     // Every candidate has an end outside the largest piece, so only those nodes are
     // searched.
-    let mut uf = UnionFind::<u32>::new(n);
-    for a in 0..n {
+    let pieces = UFRush::new(n);
+    (0..n).into_par_iter().for_each(|a| {
         for &b in graph.neighbours(a) {
             if b as usize > a {
-                uf.union(a as u32, b);
+                pieces.unite(a, b as usize);
             }
         }
-    }
-    let piece: Vec<u32> = (0..n as u32).map(|a| uf.find_mut(a)).collect();
+    });
+    // Each node's piece, by a representative node (`piece[r] == r` for it).
+    let piece: Vec<u32> = (0..n).into_par_iter().map(|a| pieces.find(a) as u32).collect();
+    drop(pieces);
     let mut size = filled(n, 0u32);
     for &p in &piece {
         size[p as usize] += 1;
@@ -401,11 +422,16 @@ pub fn build<T: Voxel>(
             })
         })
         .collect();
-    drop(piece);
     candidates.par_sort_unstable();
     candidates.dedup();
-    let mut bridges: Vec<(u32, u32)> =
-        candidates.into_iter().filter(|&(a, b)| uf.union(a, b)).flat_map(|(a, b)| [(a, b), (b, a)]).collect();
+    // The pieces joined in candidate order: a pair bridges when its pieces are not yet
+    // one (which depends on the pieces alone, not on their representatives).
+    let mut joined = UnionFind::<u32>::new(n);
+    let mut bridges: Vec<(u32, u32)> = candidates
+        .into_iter()
+        .filter(|&(a, b)| joined.union(piece[a as usize], piece[b as usize]))
+        .flat_map(|(a, b)| [(a, b), (b, a)])
+        .collect();
     if !bridges.is_empty() {
         // A bridge joins two pieces, so it is never an edge already.
         bridges.sort_unstable();
@@ -416,18 +442,10 @@ pub fn build<T: Voxel>(
         return Err(crate::error::Error::Interrupted);
     }
     // Components numbered by their first node.
-    let mut label = vec![u32::MAX; n];
-    let mut label_of_root = vec![u32::MAX; n];
-    let mut components = 0u32;
-    for (a, l) in label.iter_mut().enumerate() {
-        let root = uf.find_mut(a as u32) as usize;
-        if label_of_root[root] == u32::MAX {
-            label_of_root[root] = components;
-            components += 1;
-        }
-        *l = label_of_root[root];
-    }
-    drop((label_of_root, uf));
+    let root: Vec<u32> = piece.iter().map(|&p| joined.find_mut(p)).collect();
+    drop((piece, joined));
+    let (label, components) = number_by_first(&root);
+    drop(root);
 
     let mut positions = try_filled(n, [0.0; 3])?;
     positions.par_chunks_mut(ROW_BLOCK).enumerate().for_each(|(c, part)| {
@@ -438,7 +456,7 @@ pub fn build<T: Voxel>(
     assert_eq!(edt_sq.len(), n, "the EDT of another mask");
     let mut radii = try_with_capacity(n)?;
     radii.par_extend(edt_sq.par_iter().map(|&d| (d as f64).sqrt()));
-    Ok(GridGraph { graph, positions, radii, component: label, components: components as usize })
+    Ok(GridGraph { graph, positions, radii, component: label, components })
 }
 
 #[cfg(test)]
