@@ -23,11 +23,10 @@
 //! touches a single other cell is merged into it ([`absorb_leaves`]).
 
 use crate::decimate::{mean_and_largest, members_by_cluster, quotient, NodeGraph};
-use crate::grid::number_by_first;
 use crate::grid::GridGraph;
+use crate::union_find::{number_by_first, SharedUnionFind};
 use crate::vec3::coarsest;
 use rayon::prelude::*;
-use uf_rush::UFRush;
 
 /// Cap on the rounds of pointer doubling that find every voxel's centre: 2⁶⁴ steps of
 /// the climb, more than any graph's nodes.
@@ -94,18 +93,17 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
     };
     // Cells: connected pieces of a box, numbered by their first voxel (whatever the
     // order in which the threads joined them: only the pieces are read).
-    let uf = UFRush::new(n);
+    let uf = SharedUnionFind::new(n);
     (0..n).into_par_iter().for_each(|i| {
         let bi = box_of(i);
         for &j in g.neighbours(i) {
             let j = j as usize;
             if j > i && bi == box_of(j) && same_vessel(i, j) {
-                uf.unite(i, j);
+                uf.union(i as u32, j as u32);
             }
         }
     });
-    let root: Vec<u32> = (0..n).into_par_iter().map(|i| uf.find(i) as u32).collect();
-    drop(uf);
+    let root = uf.into_roots();
     let (mut map, cells) = number_by_first(&root);
     drop(root);
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.

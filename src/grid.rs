@@ -6,12 +6,12 @@
 use crate::error::Result;
 use crate::memory::{try_filled, try_with_capacity};
 use crate::params::{Connectivity, Params};
+use crate::union_find::{number_by_first, SharedUnionFind};
 use crate::volume::{foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
 use std::sync::Mutex;
-use uf_rush::UFRush;
 
 /// Rows per parallel task when a pass walks the graph row by row. Fixed, so every
 /// parallel reduction is split the same way whatever the thread count.
@@ -290,24 +290,6 @@ fn with_extra<I: Iterator<Item = u32>>(
     Ok(Csr { offsets, targets })
 }
 
-/// The sets of a union-find numbered 0, 1, ... in the order of their first element:
-/// `root[i]` is the representative of `i`'s set (`root[r] == r` for a representative
-/// `r`). The numbering depends only on the partition, not on which element represents a
-/// set. Returns every element's number and the number of sets.
-pub(crate) fn number_by_first(root: &[u32]) -> (Vec<u32>, usize) {
-    let mut number = vec![u32::MAX; root.len()];
-    let mut sets = 0u32;
-    for (i, &r) in root.iter().enumerate() {
-        // `number[r]` is written when the set is first met, at or before `i = r`.
-        if number[r as usize] == u32::MAX {
-            number[r as usize] = sets;
-            sets += 1;
-        }
-        number[i] = number[r as usize];
-    }
-    (number, sets as usize)
-}
-
 /// Build the initial grid graph of `mask` (docs/method.md §1).
 ///
 /// Edges join face neighbours (`connectivity = 6`; 18 or 26 on request). With
@@ -393,17 +375,16 @@ pub fn build<T: Voxel>(
     // pairs would (pairs already in one piece never bridge, and pieces only grow).
     // Every candidate has an end outside the largest piece, so only those nodes are
     // searched.
-    let pieces = UFRush::new(n);
+    let pieces = SharedUnionFind::new(n);
     (0..n).into_par_iter().for_each(|a| {
         for &b in graph.neighbours(a) {
             if b as usize > a {
-                pieces.unite(a, b as usize);
+                pieces.union(a as u32, b);
             }
         }
     });
-    // Each node's piece, by a representative node (`piece[r] == r` for it).
-    let piece: Vec<u32> = (0..n).into_par_iter().map(|a| pieces.find(a) as u32).collect();
-    drop(pieces);
+    // Each node's piece, by its first node.
+    let piece = pieces.into_roots();
     let mut size = filled(n, 0u32);
     for &p in &piece {
         size[p as usize] += 1;
