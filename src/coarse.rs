@@ -24,8 +24,8 @@
 
 use crate::decimate::{mean_and_largest, members_by_cluster, quotient, NodeGraph};
 use crate::grid::GridGraph;
-use crate::union_find::{number_by_first, SharedUnionFind};
 use crate::vec3::coarsest;
+use petgraph::unionfind::UnionFind;
 use rayon::prelude::*;
 
 /// Cap on the rounds of pointer doubling that find every voxel's centre: 2⁶⁴ steps of
@@ -91,10 +91,9 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
         let r = radii[centre[i] as usize].min(radii[centre[j] as usize]);
         d2 < r * r
     };
-    // Cells: connected pieces of a box, numbered by their first voxel (whatever the
-    // order in which the threads joined them: only the pieces are read).
-    let uf = SharedUnionFind::new(n);
-    (0..n).into_par_iter().for_each(|i| {
+    // Cells: connected pieces of a box, numbered by their first voxel.
+    let mut uf = UnionFind::<u32>::new(n);
+    for i in 0..n {
         let bi = box_of(i);
         for &j in g.neighbours(i) {
             let j = j as usize;
@@ -102,12 +101,20 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
                 uf.union(i as u32, j as u32);
             }
         }
-    });
-    let root = uf.into_roots();
-    let (mut map, cells) = number_by_first(&root);
-    drop(root);
+    }
+    let mut map = vec![u32::MAX; n];
+    let mut cells = 0u32;
+    for i in 0..n {
+        let root = uf.find_mut(i as u32) as usize;
+        if map[root] == u32::MAX {
+            map[root] = cells;
+            cells += 1;
+        }
+        map[i] = map[root];
+    }
+    drop(uf);
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.
-    let mut wide = vec![false; cells];
+    let mut wide = vec![false; cells as usize];
     for i in 0..n {
         wide[map[i] as usize] |= has_cells(cell, radii[centre[i] as usize], coarsest);
     }

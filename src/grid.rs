@@ -6,7 +6,6 @@
 use crate::error::Result;
 use crate::memory::{try_filled, try_with_capacity};
 use crate::params::{Connectivity, Params};
-use crate::union_find::{number_by_first, SharedUnionFind};
 use crate::volume::{foreground_rows, Voxel};
 use ndarray::{ArrayView3, Axis};
 use petgraph::unionfind::UnionFind;
@@ -375,16 +374,15 @@ pub fn build<T: Voxel>(
     // pairs would (pairs already in one piece never bridge, and pieces only grow).
     // Every candidate has an end outside the largest piece, so only those nodes are
     // searched.
-    let pieces = SharedUnionFind::new(n);
-    (0..n).into_par_iter().for_each(|a| {
+    let mut uf = UnionFind::<u32>::new(n);
+    for a in 0..n {
         for &b in graph.neighbours(a) {
             if b as usize > a {
-                pieces.union(a as u32, b);
+                uf.union(a as u32, b);
             }
         }
-    });
-    // Each node's piece, by its first node.
-    let piece = pieces.into_roots();
+    }
+    let piece: Vec<u32> = (0..n as u32).map(|a| uf.find_mut(a)).collect();
     let mut size = filled(n, 0u32);
     for &p in &piece {
         size[p as usize] += 1;
@@ -403,16 +401,11 @@ pub fn build<T: Voxel>(
             })
         })
         .collect();
+    drop(piece);
     candidates.par_sort_unstable();
     candidates.dedup();
-    // The pieces joined in candidate order: a pair bridges when its pieces are not yet
-    // one (which depends on the pieces alone, not on their representatives).
-    let mut joined = UnionFind::<u32>::new(n);
-    let mut bridges: Vec<(u32, u32)> = candidates
-        .into_iter()
-        .filter(|&(a, b)| joined.union(piece[a as usize], piece[b as usize]))
-        .flat_map(|(a, b)| [(a, b), (b, a)])
-        .collect();
+    let mut bridges: Vec<(u32, u32)> =
+        candidates.into_iter().filter(|&(a, b)| uf.union(a, b)).flat_map(|(a, b)| [(a, b), (b, a)]).collect();
     if !bridges.is_empty() {
         // A bridge joins two pieces, so it is never an edge already.
         bridges.sort_unstable();
@@ -423,10 +416,18 @@ pub fn build<T: Voxel>(
         return Err(crate::error::Error::Interrupted);
     }
     // Components numbered by their first node.
-    let root: Vec<u32> = piece.iter().map(|&p| joined.find_mut(p)).collect();
-    drop((piece, joined));
-    let (label, components) = number_by_first(&root);
-    drop(root);
+    let mut label = vec![u32::MAX; n];
+    let mut label_of_root = vec![u32::MAX; n];
+    let mut components = 0u32;
+    for (a, l) in label.iter_mut().enumerate() {
+        let root = uf.find_mut(a as u32) as usize;
+        if label_of_root[root] == u32::MAX {
+            label_of_root[root] = components;
+            components += 1;
+        }
+        *l = label_of_root[root];
+    }
+    drop((label_of_root, uf));
 
     let mut positions = try_filled(n, [0.0; 3])?;
     positions.par_chunks_mut(ROW_BLOCK).enumerate().for_each(|(c, part)| {
@@ -437,7 +438,7 @@ pub fn build<T: Voxel>(
     assert_eq!(edt_sq.len(), n, "the EDT of another mask");
     let mut radii = try_with_capacity(n)?;
     radii.par_extend(edt_sq.par_iter().map(|&d| (d as f64).sqrt()));
-    Ok(GridGraph { graph, positions, radii, component: label, components })
+    Ok(GridGraph { graph, positions, radii, component: label, components: components as usize })
 }
 
 #[cfg(test)]

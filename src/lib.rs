@@ -77,7 +77,6 @@ pub mod shapes;
 pub mod smooth;
 pub mod solver;
 pub mod sprouts;
-mod union_find;
 mod vec3;
 pub mod volume;
 
