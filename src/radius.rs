@@ -967,6 +967,36 @@ mod tests {
         }
     }
 
+    /// The chords of a round section put its centre where it is, wherever the node sits
+    /// and whichever directions kept their chords (each chord's midpoint is the
+    /// projection of the centre on its line); a single direction spans no plane and
+    /// leaves the node where it is.
+    #[test]
+    fn the_chords_midpoints_put_a_round_sections_centre_where_it_is() {
+        let mut next = crate::test_unit_rng(2024);
+        for _ in 0..200 {
+            let p: [f64; 3] = std::array::from_fn(|_| 10.0 * next());
+            let t = unit(std::array::from_fn(|_| next() - 0.5)).unwrap();
+            let [u, v] = plane_basis(t);
+            // The section's centre, up to two cells off the node in the plane.
+            let (du, dv) = (4.0 * next() - 2.0, 4.0 * next() - 2.0);
+            let centre: [f64; 3] = std::array::from_fn(|d| p[d] + du * u[d] + dv * v[d]);
+            let chords: Vec<Chord> = (0..CHORD_DIRECTIONS)
+                .filter(|_| next() < 0.6)
+                .map(|k| {
+                    let a = std::f64::consts::PI * k as f64 / CHORD_DIRECTIONS as f64;
+                    let w: [f64; 3] = std::array::from_fn(|d| a.cos() * u[d] + a.sin() * v[d]);
+                    let midpoint = dot(sub(centre, p), w);
+                    Chord { length: 6.0, middle: true, excess: 0.0, plane: 2, direction: k, midpoint }
+                })
+                .collect();
+            let got = chord_centre(chords.iter(), [u, v], p);
+            let spans = chords.first().is_some_and(|f| chords.iter().any(|x| x.direction != f.direction));
+            let want = if spans { centre } else { p };
+            assert!((0..3).all(|d| (got[d] - want[d]).abs() < 1e-9), "{got:?} against {want:?}");
+        }
+    }
+
     /// A vessel along a grid axis has the same slice at every step along it, and its
     /// section reads exactly that slice's voxel area wherever the node sits between two
     /// slices: the slab's half-width is a whole number of the coarsest spacing, over
@@ -1051,15 +1081,15 @@ mod tests {
                     }
                     (inside, outside)
                 };
+                // A chord starts inside.
+                if value(0.0) < 0.5 {
+                    continue;
+                }
                 let plain = first_out.map_or(reach, |m| {
                     let (inside, outside) = bisect(BISECTIONS, m);
                     let (a, b) = (value(inside), value(outside));
                     inside + (a - 0.5) / (a - b) * (outside - inside)
                 });
-                // A chord starts inside.
-                if value(0.0) < 0.5 {
-                    continue;
-                }
                 let got = extent(&mut reader, q, w, step, reach, 0.0);
                 assert!((got - plain).abs() < 1e-9 * c, "{q:?} {w:?}: {got} against {plain}");
                 let skipping = extent(&mut reader, q, w, step, reach, clear);
