@@ -505,6 +505,13 @@ def targets(rows: list[Row], sizes: list[int], threads: int) -> list[str]:
         "{:.0f}x",
         None if r is None else r >= 300,
     )
+    r = d["peak_extra"] / d["foreground"] if d else None
+    add(
+        "peak memory ≤ 150 B / fg voxel on damseh_synth2",
+        r,
+        "{:.0f} B",
+        None if r is None else r <= 150,
+    )
     label = f"{sizes[-1]}³"
     one, many = ours(label, 1), ours(label)
     r = one["wall"] / many["wall"] if one and many and threads > 1 else None
