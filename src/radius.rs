@@ -598,10 +598,9 @@ fn chord_radius<T: Voxel>(
     let [u, v] = plane_basis(t);
     let mut interpolated = Interpolated::new(mask, spacing);
     // The chords' directions, the same in every plane.
-    let directions: [[f64; 3]; CHORD_DIRECTIONS] = std::array::from_fn(|k| {
-        let a = std::f64::consts::PI * k as f64 / CHORD_DIRECTIONS as f64;
-        std::array::from_fn(|d| a.cos() * u[d] + a.sin() * v[d])
-    });
+    let turns: [(f64, f64); CHORD_DIRECTIONS] = std::array::from_fn(turn);
+    let directions: [[f64; 3]; CHORD_DIRECTIONS] =
+        turns.map(|(cos, sin)| std::array::from_fn(|d| cos * u[d] + sin * v[d]));
     // How much more coarsely than the finest spacing (the base cell `c`) each direction
     // is sampled: the width of a voxel along it beyond that of a cube of side `c`.
     let excess: [f64; CHORD_DIRECTIONS] =
@@ -619,7 +618,7 @@ fn chord_radius<T: Voxel>(
         // The voxel nearest the plane's centre, and its depth in the mask (physical).
         let v: [isize; 3] = std::array::from_fn(|d| (q0[d] / spacing[d]).round() as isize);
         let depth = field.at(v) * c;
-        for (k, (&w, &coarser)) in directions.iter().zip(&excess).enumerate() {
+        for (k, &w) in directions.iter().enumerate() {
             // A node up to half a cell off a thin vessel starts from the nearest
             // inside point of the chord's line within half a cell.
             let start = [0.0, 1.0, -1.0, 2.0, -2.0]
@@ -637,7 +636,7 @@ fn chord_radius<T: Voxel>(
                 bound[k + CHORD_DIRECTIONS] = bound[k + CHORD_DIRECTIONS].max(behind - s);
             }
             let (length, midpoint) = (ahead + behind, s + 0.5 * (ahead - behind));
-            chords.push(Chord { length, middle, excess: coarser, plane: j, direction: k, midpoint });
+            chords.push(Chord { length, middle, plane: j, direction: k, midpoint });
         }
     }
     let middle: Vec<f64> = chords.iter().filter(|x| x.middle).map(|x| x.length).collect();
@@ -653,7 +652,7 @@ fn chord_radius<T: Voxel>(
     // that thick slices flatten (a vessel lying in the plane of a two-photon stack) would
     // otherwise lose all its wide chords to its short ones.
     let least = excess.iter().copied().fold(f64::INFINITY, f64::min);
-    let mut fine: Vec<f64> = chords.iter().filter(|x| x.excess <= least + c).map(|x| x.length).collect();
+    let mut fine: Vec<f64> = chords.iter().filter(|x| excess[x.direction] <= least + c).map(|x| x.length).collect();
     if fine.is_empty() {
         fine = chords.iter().map(|x| x.length).collect();
     }
@@ -706,8 +705,15 @@ fn chord_radius<T: Voxel>(
     let inner = bound.iter().copied().fold(f64::INFINITY, f64::min);
     let outline = Outline { origin: p, t, basis: [u, v], bound, inner: inner * inner };
     let kept_middle = chords.iter().filter(|x| x.middle && x.length <= plane_limit[x.plane]);
-    let centre = chord_centre(kept_middle, [u, v], p);
+    let centre = chord_centre(kept_middle, &turns, [u, v], p);
     Some(section_radius(mask, spacing, p, t, r0, end, Some(&outline), Some(centre)) * typical / rms)
+}
+
+/// The `k`-th chord direction's coordinates `(cos a, sin a)` in its plane's basis,
+/// `a = π k / CHORD_DIRECTIONS`: the directions spread over half a turn.
+fn turn(k: usize) -> (f64, f64) {
+    let a = std::f64::consts::PI * k as f64 / CHORD_DIRECTIONS as f64;
+    (a.cos(), a.sin())
 }
 
 /// One chord across the vessel (see [`chord_radius`]).
@@ -716,8 +722,6 @@ struct Chord {
     length: f64,
     /// Whether it lies in one of the middle planes (the slab of the area).
     middle: bool,
-    /// Its direction's excess width (see `chord_radius`).
-    excess: f64,
     /// Its plane and its direction, by index.
     plane: usize,
     direction: usize,
@@ -729,14 +733,18 @@ struct Chord {
 /// the chords' planes: the point whose projections on the chords' lines lie nearest
 /// (least squares) to the chords' midpoints. A round section centred at `c` has each
 /// chord's midpoint at the projection of `c` on its line, whatever the node's offset.
-/// `p` itself when the chords span no plane (fewer than two directions).
-fn chord_centre<'a>(chords: impl Iterator<Item = &'a Chord>, [u, v]: [[f64; 3]; 2], p: [f64; 3]) -> [f64; 3] {
-    // The normal equations in the plane's basis: direction `k` is `cos a u + sin a v`,
-    // `a = π k / CHORD_DIRECTIONS`.
+/// `p` itself when the chords span no plane (fewer than two directions). `turns` are
+/// the directions' coordinates in the plane's basis `u`, `v` ([`turn`]).
+fn chord_centre<'a>(
+    chords: impl Iterator<Item = &'a Chord>,
+    turns: &[(f64, f64); CHORD_DIRECTIONS],
+    [u, v]: [[f64; 3]; 2],
+    p: [f64; 3],
+) -> [f64; 3] {
+    // The normal equations in the plane's basis.
     let (mut m, mut b) = ([0.0; 3], [0.0; 2]);
     for x in chords {
-        let a = std::f64::consts::PI * x.direction as f64 / CHORD_DIRECTIONS as f64;
-        let (cos, sin) = (a.cos(), a.sin());
+        let (cos, sin) = turns[x.direction];
         m = [m[0] + cos * cos, m[1] + cos * sin, m[2] + sin * sin];
         b = [b[0] + x.midpoint * cos, b[1] + x.midpoint * sin];
     }
@@ -984,13 +992,14 @@ mod tests {
             let chords: Vec<Chord> = (0..CHORD_DIRECTIONS)
                 .filter(|_| next() < 0.6)
                 .map(|k| {
-                    let a = std::f64::consts::PI * k as f64 / CHORD_DIRECTIONS as f64;
-                    let w: [f64; 3] = std::array::from_fn(|d| a.cos() * u[d] + a.sin() * v[d]);
+                    let (cos, sin) = turn(k);
+                    let w: [f64; 3] = std::array::from_fn(|d| cos * u[d] + sin * v[d]);
                     let midpoint = dot(sub(centre, p), w);
-                    Chord { length: 6.0, middle: true, excess: 0.0, plane: 2, direction: k, midpoint }
+                    Chord { length: 6.0, middle: true, plane: 2, direction: k, midpoint }
                 })
                 .collect();
-            let got = chord_centre(chords.iter(), [u, v], p);
+            let turns: [(f64, f64); CHORD_DIRECTIONS] = std::array::from_fn(turn);
+            let got = chord_centre(chords.iter(), &turns, [u, v], p);
             let spans = chords.first().is_some_and(|f| chords.iter().any(|x| x.direction != f.direction));
             let want = if spans { centre } else { p };
             assert!((0..3).all(|d| (got[d] - want[d]).abs() < 1e-9), "{got:?} against {want:?}");
