@@ -73,18 +73,15 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
             break;
         }
     }
-    // The box of a voxel: its side (the same number of voxels along every axis), then
-    // its index along each.
+    // The box of every voxel, as one key ([`box_key`]), computed once in parallel: the
+    // union below only compares the keys of neighbours.
     let coarsest = coarsest(spacing);
     let voxel =
         |i: usize| -> [i64; 3] { std::array::from_fn(|d| (positions[i][d] / spacing[d]).round() as i64 + origin[d]) };
-    let box_of = |i: usize| -> [i64; 6] {
-        let r = radii[centre[i] as usize];
-        let v = voxel(i);
-        let side = cell_side(cell, r, coarsest);
-        let side = [side; 3];
-        [side[0], side[1], side[2], v[0].div_euclid(side[0]), v[1].div_euclid(side[1]), v[2].div_euclid(side[2])]
-    };
+    let boxes: Vec<u64> = (0..n)
+        .into_par_iter()
+        .map(|i| box_key(cell_side(cell, radii[centre[i] as usize], coarsest), voxel(i)))
+        .collect();
     let same_vessel = |i: usize, j: usize| {
         let (a, b) = (positions[centre[i] as usize], positions[centre[j] as usize]);
         let d2: f64 = (0..3).map(|d| (a[d] - b[d]).powi(2)).sum();
@@ -94,10 +91,10 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
     // Cells: connected pieces of a box, numbered by their first voxel.
     let mut uf = UnionFind::<u32>::new(n);
     for i in 0..n {
-        let bi = box_of(i);
+        let bi = boxes[i];
         for &j in g.neighbours(i) {
             let j = j as usize;
-            if j > i && bi == box_of(j) && same_vessel(i, j) {
+            if j > i && bi == boxes[j] && same_vessel(i, j) {
                 uf.union(i as u32, j as u32);
             }
         }
@@ -116,9 +113,9 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.
     let mut wide = vec![false; cells as usize];
     for i in 0..n {
-        wide[map[i] as usize] |= has_cells(cell, radii[centre[i] as usize], coarsest);
+        wide[map[i] as usize] |= boxes[i] >> (3 * BOX_BITS) > 1;
     }
-    drop(centre);
+    drop((centre, boxes));
     let cells = absorb_leaves(g, &mut map, &wide);
     let (start, members) = members_by_cluster(&map, cells);
     let merged: Vec<([f64; 3], f64)> = (0..cells)
@@ -166,6 +163,19 @@ pub fn cell_side(cell: f64, r: f64, coarsest: f64) -> i64 {
     ((cell * r / coarsest).floor() as i64).max(1)
 }
 
+/// Bits of each axis's box index in a [`box_key`].
+const BOX_BITS: u32 = 18;
+
+/// The box of side `side` (voxels along every axis) that holds voxel `v`, as one key:
+/// the side in the top bits, then each axis's box index modulo 2¹⁸. Neighbouring
+/// voxels are at most one voxel apart along each axis, so their box indices are at most
+/// one apart, and their keys are equal exactly when they share a box. The side is at
+/// most 32 (`coarse_cell` ≤ 4 times [`MAX_CELL_RADIUS`]), well within the 10 bits left.
+fn box_key(side: i64, v: [i64; 3]) -> u64 {
+    debug_assert!((1..1 << 10).contains(&side), "a cell side of {side} voxels");
+    v.iter().fold(side as u64, |key, &x| (key << BOX_BITS) | (x.div_euclid(side) as u64 & ((1 << BOX_BITS) - 1)))
+}
+
 /// Whether a vessel of radius `r` is thick enough for cells (a side of two voxels or
 /// more): thinner vessels keep one node per voxel, their leaves and edges as in the
 /// grid start.
@@ -186,11 +196,10 @@ pub fn has_cells(cell: f64, r: f64, coarsest: f64) -> bool {
 /// start now).
 fn absorb_leaves(g: &crate::grid::Csr, map: &mut [u32], wide: &[bool]) -> usize {
     let cells = wide.len();
-    let (start, members) = members_by_cluster(map, cells);
-    let cell_graph = quotient(g, map, &start, &members);
+    let only = only_neighbour(g, map, cells);
     let target: Vec<u32> = (0..cells)
-        .map(|k| match cell_graph.neighbours(k) {
-            &[only] if (wide[k] || wide[only as usize]) && cell_graph.neighbours(only as usize).len() > 1 => only,
+        .map(|k| match only[k] {
+            o if o < MANY && (wide[k] || wide[o as usize]) && only[o as usize] == MANY => o,
             _ => k as u32,
         })
         .collect();
@@ -205,4 +214,89 @@ fn absorb_leaves(g: &crate::grid::Csr, map: &mut [u32], wide: &[bool]) -> usize 
         *m = number[k];
     }
     next as usize
+}
+
+/// [`only_neighbour`]'s mark of a cell that touches two or more others.
+const MANY: u32 = u32::MAX - 1;
+
+/// For every cell (`map`: the cell of each voxel), the one other cell it touches
+/// through the grid's edges, [`MANY`] when it touches two or more, `u32::MAX` when
+/// none. In parallel over the voxels: each cell's mark only moves from none to one cell
+/// to [`MANY`], so the result does not depend on the order the edges are seen in.
+fn only_neighbour(g: &crate::grid::Csr, map: &[u32], cells: usize) -> Vec<u32> {
+    use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
+    debug_assert!(cells < MANY as usize);
+    let mark: Vec<AtomicU32> = (0..cells).map(|_| AtomicU32::new(u32::MAX)).collect();
+    (0..map.len()).into_par_iter().for_each(|i| {
+        let k = map[i];
+        for &j in g.neighbours(i) {
+            let other = map[j as usize];
+            if other != k {
+                // At most two changes (none → `other` → MANY), so this ends.
+                let _ = mark[k as usize].fetch_update(Relaxed, Relaxed, |m| match m {
+                    u32::MAX => Some(other),
+                    m if m == other || m == MANY => None,
+                    _ => Some(MANY),
+                });
+            }
+        }
+    });
+    mark.into_iter().map(AtomicU32::into_inner).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decimate::{members_by_cluster, quotient};
+    use crate::grid::Csr;
+
+    #[test]
+    fn neighbours_box_keys_agree_exactly_when_they_share_a_box() {
+        let mut rnd = crate::test_rng(7);
+        // Near 0, negative, and where the box index wraps modulo 2¹⁸.
+        let around = [0i64, -3, 1 << 18, (1 << 18) * 5 - 1, 40_000];
+        for side in 1..=32i64 {
+            for &c in &around {
+                for _ in 0..50 {
+                    let v: [i64; 3] = std::array::from_fn(|_| c * side + rnd(2 * side as u64 + 3) as i64 - side);
+                    let w: [i64; 3] = std::array::from_fn(|d| v[d] + rnd(3) as i64 - 1);
+                    let same = (0..3).all(|d| v[d].div_euclid(side) == w[d].div_euclid(side));
+                    assert_eq!(box_key(side, v) == box_key(side, w), same, "side {side}, {v:?} and {w:?}");
+                    let other = side % 32 + 1;
+                    assert_ne!(box_key(side, v), box_key(other, w), "sides {side} and {other}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_only_neighbour_is_that_of_the_cell_graph_at_any_thread_count() {
+        let mut rnd = crate::test_rng(11);
+        for trial in 0..30 {
+            let n = 2 + rnd(60) as usize;
+            let mut edges: Vec<(u32, u32)> = (0..n * (1 + trial % 3))
+                .map(|_| (rnd(n as u64) as u32, rnd(n as u64) as u32))
+                .filter(|(a, b)| a != b)
+                .flat_map(|(a, b)| [(a, b), (b, a)])
+                .collect();
+            edges.sort_unstable();
+            edges.dedup();
+            let g = Csr::from_sorted_edges(n, &edges);
+            let cells = 1 + rnd(n as u64) as usize;
+            let map: Vec<u32> = (0..n).map(|i| if i < cells { i as u32 } else { rnd(cells as u64) as u32 }).collect();
+            let (start, members) = members_by_cluster(&map, cells);
+            let cell_graph = quotient(&g, &map, &start, &members);
+            let expected: Vec<u32> = (0..cells)
+                .map(|k| match cell_graph.neighbours(k) {
+                    [] => u32::MAX,
+                    &[only] => only,
+                    _ => MANY,
+                })
+                .collect();
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                assert_eq!(pool.install(|| only_neighbour(&g, &map, cells)), expected, "trial {trial}");
+            }
+        }
+    }
 }
