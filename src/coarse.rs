@@ -113,7 +113,7 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
     // Cells of a box wider than a voxel: only those can be pockets of a box corner.
     let mut wide = vec![false; cells as usize];
     for i in 0..n {
-        wide[map[i] as usize] |= boxes[i] >> (3 * BOX_BITS) > 1;
+        wide[map[i] as usize] |= side_of(boxes[i]) >= MIN_SIDE;
     }
     drop((centre, boxes));
     let cells = absorb_leaves(g, &mut map, &wide);
@@ -176,12 +176,22 @@ fn box_key(side: i64, v: [i64; 3]) -> u64 {
     v.iter().fold(side as u64, |key, &x| (key << BOX_BITS) | (x.div_euclid(side) as u64 & ((1 << BOX_BITS) - 1)))
 }
 
+/// The side of the box of a [`box_key`].
+fn side_of(key: u64) -> i64 {
+    (key >> (3 * BOX_BITS)) as i64
+}
+
 /// Whether a vessel of radius `r` is thick enough for cells (a side of two voxels or
 /// more): thinner vessels keep one node per voxel, their leaves and edges as in the
 /// grid start.
 pub fn has_cells(cell: f64, r: f64, coarsest: f64) -> bool {
-    cell_side(cell, r, coarsest) > 1
+    cell_side(cell, r, coarsest) >= MIN_SIDE
 }
+
+/// The smallest side of a box that groups voxels ([`has_cells`]), in voxels of the
+/// coarsest spacing; also the shortest limit on an edge with one end in a vessel thick
+/// enough for cells and the other not ([`crate::resample`]).
+pub const MIN_SIDE: i64 = 2;
 
 /// Merge every cell that touches only one other cell into that one (when that one
 /// touches others too), unless both are cells of a box of one voxel (`wide`: of a
@@ -262,6 +272,7 @@ mod tests {
                     let w: [i64; 3] = std::array::from_fn(|d| v[d] + rnd(3) as i64 - 1);
                     let same = (0..3).all(|d| v[d].div_euclid(side) == w[d].div_euclid(side));
                     assert_eq!(box_key(side, v) == box_key(side, w), same, "side {side}, {v:?} and {w:?}");
+                    assert_eq!(side_of(box_key(side, v)), side);
                     let other = side % 32 + 1;
                     assert_ne!(box_key(side, v), box_key(other, w), "sides {side} and {other}");
                 }

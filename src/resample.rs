@@ -33,18 +33,12 @@
 //! (2.1 % without a coarse start); with [`ridge_radii`] it is 2.8 % (04mm 2.8 → 2.7 %,
 //! 2.7 % without; GFNR / GFPR unchanged).
 
-use crate::coarse::{cell_side, has_cells};
+use crate::coarse::{cell_side, has_cells, MIN_SIDE};
 use crate::decimate::NodeGraph;
 use crate::grid::Csr;
 use crate::medial::Field;
 use crate::vec3::coarsest;
 use std::collections::HashMap;
-
-/// Shortest limit on an edge, in voxels of the coarsest spacing, when one end is in a
-/// vessel thick enough for cells and the other is not. Edges with neither end in such
-/// a vessel are not split: those vessels start from one node per voxel, as without a
-/// coarse start (splitting them changed thin trees' graphs for no gain).
-const MIN_SIDE: i64 = 2;
 
 /// Most pieces one edge is split into (an edge is never longer than the mask, and a
 /// piece never shorter than a voxel, so the cap only bounds the loop).
@@ -104,7 +98,9 @@ pub fn split_long_edges(g: NodeGraph, decide: &[f64], cell: f64, spacing: [f64; 
             let length = (0..3).map(|d| (q[d] - p[d]).powi(2)).sum::<f64>().sqrt();
             let longest = cell_side(cell, da.min(db), coarsest).max(MIN_SIDE) as f64 * coarsest;
             // Neither end in a vessel with cells (too thin or too thick, see `coarse`):
-            // left as without a coarse start.
+            // left as without a coarse start (splitting such edges changed thin trees'
+            // graphs for no gain). With one end in such a vessel, the limit is at least
+            // the smallest cell side.
             let thin = !(has_cells(cell, da, coarsest) || has_cells(cell, db, coarsest));
             let pieces = if thin { 1 } else { ((length / longest).ceil() as usize).clamp(1, MAX_PIECES) };
             (1..pieces)
