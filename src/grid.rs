@@ -291,7 +291,7 @@ fn with_extra<I: Iterator<Item = u32>>(
 
 /// The end of row `a`'s pairs in the sorted `extra`, from `x`, the end of the rows
 /// before it: a walk, as most rows have none (a binary search over the rest of `extra`
-/// for every row cost more than the rest of the build at 512³).
+/// for every row took about 0.4 s of the build's 1.2 s on the 512³ bed).
 fn row_end(extra: &[(u32, u32)], mut x: usize, a: usize) -> usize {
     while extra.get(x).is_some_and(|&(b, _)| b as usize == a) {
         x += 1;
