@@ -467,6 +467,11 @@ def targets(rows: list[Row], sizes: list[int], threads: int) -> list[str]:
         shown = "not run" if value is None else fmt.format(value)
         out.append(f"| {name} | {shown} | {'-' if good is None else 'yes' if good else 'no'} |")
 
+    def add_memory(where: str, row: dict | None) -> None:
+        r = row["peak_extra"] / row["foreground"] if row else None
+        good = None if r is None else r <= 150
+        add(f"peak memory ≤ 150 B / fg voxel {where}", r, "{:.0f} B", good)
+
     for size in sizes:
         label = f"{size}³"
         a, b = ours(label), ok.get((label, "skimage+skan", 1))
@@ -480,13 +485,7 @@ def targets(rows: list[Row], sizes: list[int], threads: int) -> list[str]:
             "{:.1f}x",
             None if r is None else r >= 100,
         )
-        r = a["peak_extra"] / a["foreground"] if a else None
-        add(
-            f"peak memory ≤ 150 B / fg voxel at {label}",
-            r,
-            "{:.0f} B",
-            None if r is None else r <= 150,
-        )
+        add_memory(f"at {label}", a)
     for small, big in zip(sizes, sizes[1:]):
         a, b = ours(f"{small}³"), ours(f"{big}³")
         factor = (big / small) ** 3
@@ -505,13 +504,7 @@ def targets(rows: list[Row], sizes: list[int], threads: int) -> list[str]:
         "{:.0f}x",
         None if r is None else r >= 300,
     )
-    r = d["peak_extra"] / d["foreground"] if d else None
-    add(
-        "peak memory ≤ 150 B / fg voxel on damseh_synth2",
-        r,
-        "{:.0f} B",
-        None if r is None else r <= 150,
-    )
+    add_memory("on damseh_synth2", d)
     label = f"{sizes[-1]}³"
     one, many = ours(label, 1), ours(label)
     r = one["wall"] / many["wall"] if one and many and threads > 1 else None
