@@ -160,9 +160,11 @@ fn vascular_forest(n: usize) -> Array3<u8> {
     mask
 }
 
-/// One contraction iteration (METHOD.md §2) on `g`, as the pipeline runs it on a cube.
-fn contract_once(g: &NodeGraph, p: &Params) -> NodeGraph {
-    let (next, _) = contract_step(g.clone(), p, CELL, None, &mut StageClock::default()).expect("cells in range");
+/// One contraction iteration (METHOD.md §2) on `g`, the grid graph of `mask`, as the
+/// pipeline runs it on a cube.
+fn contract_once(g: &NodeGraph, p: &Params, mask: &Array3<u8>) -> NodeGraph {
+    let (next, _) = contract_step(g.clone(), p, CELL, None, &mut StageClock::default(), mask.view(), SPACING)
+        .expect("cells in range");
     black_box(short_cycle_area(&next.graph, &next.positions, p.max_cycle_nodes));
     next
 }
@@ -204,7 +206,7 @@ fn stages(cr: &mut Criterion) {
         let grid = grid::build(mask.view(), &edt, SPACING, &p).unwrap();
         let g =
             NodeGraph { graph: grid.graph, positions: grid.positions, radii: grid.radii, component: grid.component };
-        group.bench_with_input(BenchmarkId::new("contract", n), &g, |b, g| b.iter(|| contract_once(g, &p)));
+        group.bench_with_input(BenchmarkId::new("contract", n), &g, |b, g| b.iter(|| contract_once(g, &p, mask)));
 
         group.bench_with_input(BenchmarkId::new("laplacian", n), &g, |b, g| {
             b.iter(|| {

@@ -1,4 +1,4 @@
-//! Nodes kept inside the mask (output stage; not in the paper).
+//! Nodes kept inside the mask (output stage, and the contraction's undone moves; not in the paper).
 //!
 //! The flow and the mean-position decimation can leave a node off the mask: a
 //! cluster of a thin curved vessel averages to a point on the chord of the curve,
@@ -96,6 +96,29 @@ pub fn keep_inside<T: Voxel>(positions: &[[f64; 3]], mask: ArrayView3<'_, T>, sp
         .collect()
 }
 
+/// Every node `k` of `moved` that `held(k)` selects and that the contraction's solve
+/// took from a foreground voxel (its position in `before`) onto a background voxel or
+/// out of the array goes back where it was (not in the paper). The flow pulls a loop
+/// around a narrow hole of the mask across the hole and shut, and cuts the corner of a
+/// thin curved vessel through the background: both are moves off the mask. A node
+/// already off the mask moves freely, so that it can come back (README, "Where we
+/// differ", 18).
+pub fn undo_moves_off_the_mask<T: Voxel>(
+    moved: &mut [[f64; 3]],
+    before: &[[f64; 3]],
+    held: &(dyn Fn(usize) -> bool + Sync),
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
+) {
+    let (n0, n1, n2) = mask.dim();
+    let inside = |p: [f64; 3]| voxel_of(p, spacing, [n0, n1, n2]).is_some_and(|v| mask[v].is_set());
+    moved.par_iter_mut().zip(before.par_iter()).enumerate().for_each(|(k, (q, &b))| {
+        if held(k) && !inside(*q) && inside(b) {
+            *q = b;
+        }
+    });
+}
+
 /// Base cells taken off the EDT radii the loop rule compares holes with (the
 /// half-voxel correction of `docs/method.md` §1, with which [`loop_of_the_mask`] was set; the output radii
 /// are measured apart, by [`crate::radius`]).
@@ -143,6 +166,29 @@ mod tests {
             }
         }
         best.1
+    }
+
+    /// Of five nodes that start inside a one-voxel line along axis 2 (and one outside),
+    /// the moves of held nodes that end off the line are undone, at any spacing: the
+    /// move along the line, the move off it that stays within its voxel, the node not
+    /// held and the node that started outside keep their new positions.
+    #[test]
+    fn held_moves_from_the_mask_onto_the_background_are_undone() {
+        let line = Array3::from_shape_fn((3, 3, 6), |(i, j, _)| u8::from(i == 1 && j == 1));
+        for spacing in [[1.0; 3], [0.5, 2.0, 1.5]] {
+            let at = |v: [f64; 3]| -> [f64; 3] { std::array::from_fn(|d| v[d] * spacing[d]) };
+            let before: Vec<[f64; 3]> =
+                [[1.0, 1.0, 1.0], [1.0, 1.0, 2.0], [1.0, 1.0, 3.0], [1.0, 1.0, 4.0], [0.0, 0.0, 0.0], [1.0, 1.0, 5.0]]
+                    .map(at)
+                    .to_vec();
+            let to: Vec<[f64; 3]> =
+                [[1.0, 1.0, 2.6], [1.0, 1.7, 2.0], [1.3, 1.0, 3.0], [1.0, 1.0, 6.0], [0.0, 0.0, 1.0], [2.0, 1.0, 5.0]]
+                    .map(at)
+                    .to_vec();
+            let mut moved = to.clone();
+            undo_moves_off_the_mask(&mut moved, &before, &|k| k != 5, line.view(), spacing);
+            assert_eq!(moved, vec![to[0], before[1], to[2], before[3], to[4], to[5]], "spacing {spacing:?}");
+        }
     }
 
     /// A square loop of one-voxel lines around a 3×3 hole is a loop of the mask; a

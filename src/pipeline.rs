@@ -11,7 +11,7 @@ use crate::error::{Error, Result};
 use crate::fate::{core_owners, follow, VoxelFate};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, filled, Csr};
-use crate::inside::{keep_inside, loop_of_the_mask, LOOP_RADIUS_SHIFT};
+use crate::inside::{keep_inside, loop_of_the_mask, undo_moves_off_the_mask, LOOP_RADIUS_SHIFT};
 use crate::laplacian;
 use crate::laplacian::NormalOperator;
 use crate::medial;
@@ -98,30 +98,37 @@ pub fn debug_panic(stage: &str) {
 }
 
 /// One contraction iteration (Algorithm 1, lines 3–7): weights and anchoring from the
-/// current geometry, the least-squares solve of eq. 8, and decimation, with the time
-/// of each part added to `clock`. The solve's rows are put in slabs along `axes[0]`
-/// when given ([`slab_axes`]), which changes its rounding, not its minimiser. Runs on
-/// the current rayon pool.
-pub fn contract_step(
+/// current geometry, the least-squares solve of eq. 8, the moves off `mask` undone
+/// ([`undo_moves_off_the_mask`]), and decimation, with the time of each part added to
+/// `clock`. The solve's rows are put in slabs along `axes[0]` when given
+/// ([`slab_axes`]), which changes its rounding, not its minimiser. Runs on the current
+/// rayon pool.
+#[allow(clippy::too_many_arguments)]
+pub fn contract_step<T: Voxel>(
     g: NodeGraph,
     p: &Params,
     c: f64,
     axes: Option<[usize; 3]>,
     clock: &mut StageClock,
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
 ) -> Result<(NodeGraph, SolveStats)> {
-    contract_step_mapped(g, p, p.cg_tol, c, axes, clock).map(|(next, stats, _)| (next, stats))
+    contract_step_mapped(g, p, p.cg_tol, c, axes, clock, mask, spacing).map(|(next, stats, _)| (next, stats))
 }
 
 /// [`contract_step`] that also returns the new node of every old node
 /// ([`decimate_mapped`]), with the solve's relative residual `tol` in place of
 /// `p.cg_tol` (the run's schedule: [`solver::solve_tolerance`]).
-pub fn contract_step_mapped(
+#[allow(clippy::too_many_arguments)]
+pub fn contract_step_mapped<T: Voxel>(
     mut g: NodeGraph,
     p: &Params,
     tol: f64,
     c: f64,
     axes: Option<[usize; 3]>,
     clock: &mut StageClock,
+    mask: ArrayView3<'_, T>,
+    spacing: [f64; 3],
 ) -> Result<(NodeGraph, SolveStats, Vec<u32>)> {
     let skeletal = clock.time("laplacian", || laplacian::skeletal(&g.graph, &g.positions, p));
     cancel::checkpoint()?;
@@ -154,13 +161,25 @@ pub fn contract_step_mapped(
     };
     let graph = clock.time("solve", || PackedCsr::new(std::mem::take(&mut g.graph)));
     return_free_memory();
+    // The positions before the move, in the solve's order, for the moves to undo: kept
+    // from here rather than from the start, so that they are not held while `M` is
+    // assembled (the contraction's peak).
+    let before = clock.time("solve", || start.clone());
     let k = clock.time("solve", || Krylov::displacement(&m, start));
-    let (moved, stats) = clock.time("solve", || solver::solve(&m, k, tol, p.cg_max_iterations));
+    let (mut moved, stats) = clock.time("solve", || solver::solve(&m, k, tol, p.cg_max_iterations));
     drop(m);
     // The solve stops early when the run is asked to stop: its result is partial.
     cancel::checkpoint()?;
     return_free_memory();
     g.graph = clock.time("solve", || graph.unpack());
+    // The rule holds the nodes of curves (degree 1 or 2): a loop's ring, a bent vessel.
+    // The knots the flow has still to collapse (nodes of degree 3 or more) move freely:
+    // held, they stop collapsing where the mask is a voxel thin, and the contraction
+    // ran to `max_iterations` on two VascuSynth trees.
+    let node = |k: usize| order.as_ref().map_or(k, |o| o[k] as usize);
+    let curve = |k: usize| g.graph.neighbours(node(k)).len() <= 2;
+    clock.time("solve", || undo_moves_off_the_mask(&mut moved, &before, &curve, mask, spacing));
+    drop(before);
     (g.radii, g.component) = clock.time("solve", || nodes.unpack());
     g.positions = match &order {
         Some(order) => clock.time("solve", || {
@@ -357,8 +376,8 @@ impl Skeletonizer {
         info.converged = a_t <= info.area_reference;
         while !info.converged && info.iterations < p.max_iterations {
             let tol = solver::solve_tolerance(p.cg_tol, a_t / info.area_reference);
-            let (next, stats, map) =
-                pool.install(|| contract_step_mapped(std::mem::take(&mut g), p, tol, c, axes, &mut clock))?;
+            let (next, stats, map) = pool
+                .install(|| contract_step_mapped(std::mem::take(&mut g), p, tol, c, axes, &mut clock, mask, spacing))?;
             follow(&mut fate, &map);
             g = next;
             a_t = clock.time("cycles", || area(&g));

@@ -814,7 +814,15 @@ mod harness {
         let t = Instant::now();
         let (_, stats) = pool
             .install(|| {
-                contract_step(g.clone(), &p, 1.0, crate::precondition::slab_axes(mask.dim().into()), &mut clock)
+                contract_step(
+                    g.clone(),
+                    &p,
+                    1.0,
+                    crate::precondition::slab_axes(mask.dim().into()),
+                    &mut clock,
+                    mask.view(),
+                    [1.0; 3],
+                )
             })
             .unwrap();
         let dt = t.elapsed().as_secs_f64();
