@@ -43,7 +43,7 @@
 //! thread count. Edges that stay inside, and their nodes, are unchanged bit for bit.
 
 use crate::grid::Csr;
-use crate::inside::{nearest_foreground, voxel_of};
+use crate::inside::{nearest_foreground, on_mask, voxel_of};
 use crate::medial::{climb, plane_basis, Field};
 use crate::radius::output_radii;
 use crate::vec3::{base_cell, coarsest, norm, sub};
@@ -75,14 +75,13 @@ pub struct Routed {
 /// The background samples of the segment `p`–`q`: the first and last, their count,
 /// and the number of samples (see the module); `None` when every sample is foreground.
 pub fn outside_run<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], q: [f64; 3], spacing: [f64; 3]) -> Option<Outside> {
-    let (n0, n1, n2) = mask.dim();
     let c = base_cell(spacing);
     let d = sub(q, p);
     let pieces = ((norm(d) * SAMPLES_PER_CELL / c).ceil() as usize).max(1);
     let outside = |k: usize| {
         let t = (k as f64 + 0.5) / pieces as f64;
         let x = std::array::from_fn(|a| p[a] + t * d[a]);
-        voxel_of(x, spacing, [n0, n1, n2]).is_none_or(|v| !mask[v].is_set())
+        !on_mask(mask, x, spacing)
     };
     let first = (0..pieces).find(|&k| outside(k))?;
     let last = (first..pieces).rev().find(|&k| outside(k)).unwrap_or(first);

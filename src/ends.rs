@@ -29,7 +29,7 @@
 //! ([`crate::edges_inside`]).
 
 use crate::grid::Csr;
-use crate::inside::voxel_of;
+use crate::inside::{on_mask as inside, voxel_of};
 use crate::vec3::{base_cell, dot, norm, sub, unit};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
@@ -38,11 +38,6 @@ use rustc_hash::FxHashMap;
 
 /// Steps along the line per base cell.
 const STEPS_PER_CELL: f64 = 4.0;
-
-fn inside<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], spacing: [f64; 3]) -> bool {
-    let (n0, n1, n2) = mask.dim();
-    voxel_of(p, spacing, [n0, n1, n2]).is_some_and(|v| mask[v].is_set())
-}
 
 /// The unit direction from the node `reach` back along the branch to end `i`.
 fn direction(g: &Csr, positions: &[[f64; 3]], i: usize, reach: f64) -> Option<[f64; 3]> {

@@ -25,6 +25,13 @@ pub const KEEP: f64 = 0.9;
 /// Largest half-width, in voxels, of the cube searched for a foreground voxel.
 pub const SEARCH_LIMIT: isize = 8;
 
+/// Whether `p` (physical units) lies on the mask: its nearest voxel is in the array and
+/// set. The one test of "on a vessel voxel" for every stage.
+pub fn on_mask<T: Voxel>(mask: &ArrayView3<'_, T>, p: [f64; 3], spacing: [f64; 3]) -> bool {
+    let (n0, n1, n2) = mask.dim();
+    voxel_of(p, spacing, [n0, n1, n2]).is_some_and(|v| mask[v].is_set())
+}
+
 /// The voxel index nearest to `p` (physical units), if it lies in the array.
 pub fn voxel_of(p: [f64; 3], spacing: [f64; 3], shape: [usize; 3]) -> Option<[usize; 3]> {
     let mut idx = [0usize; 3];
@@ -81,17 +88,18 @@ pub(crate) fn nearest_foreground<T: Voxel>(
 /// `positions` with every node on a background voxel (or outside the array) moved to
 /// the nearest foreground voxel centre (see the module).
 pub fn keep_inside<T: Voxel>(positions: &[[f64; 3]], mask: ArrayView3<'_, T>, spacing: [f64; 3]) -> Vec<[f64; 3]> {
-    let (n0, n1, n2) = mask.dim();
     positions
         .par_iter()
-        .map(|&p| match voxel_of(p, spacing, [n0, n1, n2]) {
-            Some(v) if mask[v].is_set() => p,
-            _ => nearest_foreground(&mask, p, spacing).map_or(p, |v| {
+        .map(|&p| {
+            if on_mask(&mask, p, spacing) {
+                return p;
+            }
+            nearest_foreground(&mask, p, spacing).map_or(p, |v| {
                 std::array::from_fn(|d| {
                     let (c, half) = (v[d] as f64 * spacing[d], 0.5 * KEEP * spacing[d]);
                     p[d].clamp(c - half, c + half)
                 })
-            }),
+            })
         })
         .collect()
 }
@@ -110,10 +118,8 @@ pub fn undo_moves_off_the_mask<T: Voxel>(
     mask: ArrayView3<'_, T>,
     spacing: [f64; 3],
 ) {
-    let (n0, n1, n2) = mask.dim();
-    let inside = |p: [f64; 3]| voxel_of(p, spacing, [n0, n1, n2]).is_some_and(|v| mask[v].is_set());
     moved.par_iter_mut().zip(before.par_iter()).enumerate().for_each(|(k, (q, &b))| {
-        if held(k) && !inside(*q) && inside(b) {
+        if held(k) && !on_mask(&mask, *q, spacing) && on_mask(&mask, b, spacing) {
             *q = b;
         }
     });
@@ -143,8 +149,7 @@ pub fn loop_of_the_mask<T: Voxel>(
     let centroid: [f64; 3] =
         std::array::from_fn(|d| cycle.nodes.iter().map(|&i| positions[i as usize][d]).sum::<f64>() / k);
     let r = cycle.nodes.iter().map(|&i| (radii[i as usize] - shift).max(0.0)).sum::<f64>() / k;
-    let (n0, n1, n2) = mask.dim();
-    let hole = voxel_of(centroid, spacing, [n0, n1, n2]).is_none_or(|v| !mask[v].is_set());
+    let hole = !on_mask(&mask, centroid, spacing);
     hole && cycle.area >= std::f64::consts::PI * (2.0 * r).powi(2)
 }
 
