@@ -43,13 +43,18 @@
 //! (the discrete transform has flat ridges one or two voxels wide, whose middle is
 //! the axis). A move whose target lies on a background voxel is not made.
 //!
-//! Every curve node moves from the positions the nodes had before the stage, every
-//! junction from those and the curve nodes' new positions, and the unfolding from all
-//! of those (three passes, each in parallel over the nodes), so the result does not depend on the thread count. The
-//! transform is computed again here, after the contraction, rather than kept from the
-//! grid stage: it costs an EDT's time (0.9 s of a 13 s run on the 256³ bed, up to a
-//! third of a run on sparse trees) and nothing at the run's memory peak, which is the
-//! contraction's (the contracted graph is a few percent of the foreground).
+//! Within a pass ([`recentre`]) every curve node moves from the positions the nodes had
+//! before it, every junction from those and the curve nodes' new positions, and the
+//! unfolding from all of those (three steps, each in parallel over the nodes), so the
+//! result does not depend on the thread count. The stage ([`settle`]) runs [`PASSES`]
+//! passes, each from the positions the last one left: a pass moves a node at most its
+//! cap, and the flow leaves some nodes further off the ridge than that (a node on the
+//! slope of a thick vessel whose cluster's radius is small, a line beside a noise
+//! bubble); the next pass also takes each node's plane and each junction's branch lines
+//! from nodes already moved (a vessel's end moves in the first pass only, see
+//! [`PASSES`]). The
+//! transform is the run's first stage's, kept at the foreground voxels (4 bytes per
+//! vessel voxel, [`Field::from_squared`]), not computed again.
 
 use crate::error::Result;
 use crate::grid::Csr;
@@ -107,6 +112,17 @@ pub const REACH: f64 = 3.0;
 
 /// Samples within this many base cells of the local maximum count as its plateau.
 pub const PLATEAU: f64 = 0.25;
+
+/// Passes of the stage ([`settle`]): each moves a node at most its cap, from where the
+/// last pass left it and its neighbours (so its plane, and a junction's branch lines,
+/// are those of the moved nodes). One pass left nodes that the flow had put more than a
+/// cap off the ridge (on the slope of a thick vessel, beside a noise bubble) still off
+/// it. Chosen on the tuning set (README, "Where we differ", 11: 1, 2, 3 and 5 passes).
+/// A vessel's end moves in the first pass only: within a radius of an end cap, or of
+/// the array's face, the transform falls toward the cap, so an end's plane, refitted
+/// to its moved neighbour, tilted further at every pass and the end slid along it (a
+/// flat branch ending at the array's face became a fork after three passes).
+pub const PASSES: usize = 3;
 
 /// The distance transform of a mask at its foreground voxels, with random access.
 pub struct Field {
@@ -300,17 +316,21 @@ pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f6
         std::array::from_fn(|d| p[d] + (0..2).map(|a| k[a] as f64 * h * basis[a][d]).sum::<f64>())
     };
     let within = |k: [isize; 2]| k[0] * k[0] + k[1] * k[1] <= m * m;
-    // Values at every sample of the disc (NaN outside it).
-    let values: Vec<f64> = (0..count)
-        .map(|idx| {
-            let k = offset(idx);
+    // The transform at the samples of the disc (NaN outside it), each read the first
+    // time the search needs it: the ascent and the plateau read a few dozen of the up
+    // to 289 samples, and the same values whichever they read.
+    let mut values = vec![f64::NAN; count];
+    let mut read = vec![false; count];
+    let mut value = |k: [isize; 2]| -> f64 {
+        let i = index(k);
+        if !read[i] {
+            read[i] = true;
             if within(k) {
-                field.interpolate(point(k))
-            } else {
-                f64::NAN
+                values[i] = field.interpolate(point(k));
             }
-        })
-        .collect();
+        }
+        values[i]
+    };
     let neighbours = |k: [isize; 2]| {
         (0..9).filter_map(move |n| {
             let mut q = k;
@@ -325,9 +345,9 @@ pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f6
     // Steepest ascent from the node's own sample (the first neighbour on ties).
     let mut at = [0isize; 2];
     loop {
-        let mut best = (values[index(at)], at);
+        let mut best = (value(at), at);
         for q in neighbours(at) {
-            let v = values[index(q)];
+            let v = value(q);
             if v > best.0 {
                 best = (v, q);
             }
@@ -337,7 +357,7 @@ pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f6
         }
         at = best.1;
     }
-    let peak = values[index(at)];
+    let peak = value(at);
     if peak.is_nan() || peak <= 0.0 {
         return None;
     }
@@ -349,7 +369,7 @@ pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f6
     while let Some(k) = stack.pop() {
         for q in neighbours(k) {
             let i = index(q);
-            if !member[i] && values[i] >= floor {
+            if !member[i] && value(q) >= floor {
                 member[i] = true;
                 stack.push(q);
             }
@@ -371,10 +391,31 @@ pub(crate) fn climb(field: &Field, p: [f64; 3], basis: [[f64; 3]; 2], radius: f6
     field.inside(target).then_some(target)
 }
 
-/// Positions with every node moved to the medial axis (see the module). `radii` are
-/// the nodes' radii (physical units), which bound their moves; `field` is the
-/// distance transform of the mask ([`Field::new`]).
+/// Positions after [`PASSES`] passes of [`recentre`], each from the positions the last
+/// one left, a vessel's end (a node of degree 1) moving in the first pass only (fewer
+/// passes when one moves no node: the next would move none either). The stage of the
+/// pipeline (see the module).
+pub fn settle(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field) -> Vec<[f64; 3]> {
+    let mut at = positions.to_vec();
+    for k in 0..PASSES {
+        let next = pass(g, &at, radii, field, k == 0);
+        if next == at {
+            break;
+        }
+        at = next;
+    }
+    at
+}
+
+/// Positions with every node moved once toward the medial axis (one pass of the stage,
+/// see the module). `radii` are the nodes' radii (physical units), which bound their
+/// moves; `field` is the distance transform of the mask ([`Field::new`]).
 pub fn recentre(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field) -> Vec<[f64; 3]> {
+    pass(g, positions, radii, field, true)
+}
+
+/// [`recentre`], the ends moving only with `ends`.
+fn pass(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field, ends: bool) -> Vec<[f64; 3]> {
     let c = base_cell(field.spacing);
     let reach = |i: usize| (CAP * radii[i]).max(MIN_CAP * c);
     let curves: Vec<[f64; 3]> = (0..g.nodes())
@@ -383,7 +424,7 @@ pub fn recentre(g: &Csr, positions: &[[f64; 3]], radii: &[f64], field: &Field) -
             let p = positions[i];
             let nb = g.neighbours(i);
             let t = match nb.len() {
-                1 => sub(positions[nb[0] as usize], p),
+                1 if ends => sub(positions[nb[0] as usize], p),
                 2 => sub(positions[nb[1] as usize], positions[nb[0] as usize]),
                 _ => return p,
             };

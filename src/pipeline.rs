@@ -453,7 +453,7 @@ impl Skeletonizer {
         stop.check()?;
         if p.medial {
             g.positions =
-                clock.time("medial", || pool.install(|| medial::recentre(&g.graph, &g.positions, &g.radii, &field)));
+                clock.time("medial", || pool.install(|| medial::settle(&g.graph, &g.positions, &g.radii, &field)));
         }
 
         let (out, grown) = clock.time("output", || -> Result<(Skeleton, Vec<Grown>)> {

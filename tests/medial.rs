@@ -4,7 +4,7 @@
 
 use ndarray::Array3;
 use vesselflow::grid::Csr;
-use vesselflow::medial::{recentre, Field};
+use vesselflow::medial::{recentre, settle, Field, CAP, MIN_CAP, PASSES};
 use vesselflow::shapes::{capsules, segment_distance, Capsule};
 use vesselflow::{Params, Skeleton, Skeletonizer};
 
@@ -105,6 +105,33 @@ fn a_bent_tube_with_a_bubble_gets_its_axis() {
     let (with, without) = (run(&mask, true), run(&mask, false));
     assert!(worst(&with) <= 0.5, "medial: {:.2}", worst(&with));
     assert!(worst(&without) > 0.5, "without: {:.2}", worst(&without));
+}
+
+/// A path left 3.5 voxels off the axis of a thick tube (radius 6), its nodes' radii small
+/// (2: each pass may move a node `MIN_CAP` = 2 voxels): one pass leaves it on the
+/// tube's slope, more than a voxel off; the stage's passes take it to within half a
+/// voxel of the axis, each from where the last one left it. Its ends move in the first
+/// pass only.
+#[test]
+fn passes_take_a_path_off_a_thick_tube_s_slope_to_its_axis() {
+    assert!(PASSES >= 2 && (CAP * 2.0).max(MIN_CAP) < 3.5 - 1.0);
+    let [t, u, _] = frame([1.0, 0.3, -0.2]);
+    let o = [30.0, 30.0, 30.0];
+    let mask = capsules([61, 61, 61], [1.0; 3], &[Capsule { a: add(o, t, -40.0), b: add(o, t, 40.0), r: 6.0 }]);
+    let off = |q: [f64; 3]| segment_distance(q, add(o, t, -100.0), add(o, t, 100.0));
+    let n = 11;
+    let positions: Vec<[f64; 3]> = (0..n).map(|k| add(add(o, t, 2.0 * k as f64 - 10.0), u, 3.5)).collect();
+    let (g, radii, field) = (path(n), vec![2.0; n], Field::new(mask.view(), [1.0; 3]).unwrap());
+    let once = recentre(&g, &positions, &radii, &field);
+    let settled = settle(&g, &positions, &radii, &field);
+    for ((q, a), b) in positions.iter().zip(&once).zip(&settled).take(n - 1).skip(1) {
+        assert!(off(*a) > 1.0, "{q:?}: one pass already reached the axis ({:.2} off)", off(*a));
+        assert!(off(*b) <= 0.5, "{q:?}: {:.2} off the axis after the passes", off(*b));
+    }
+    for end in [0, n - 1] {
+        assert_ne!(once[end], positions[end]);
+        assert_eq!(settled[end], once[end]);
+    }
 }
 
 /// Two parallel tubes (radii 3 and 4) that touch along their length, at a tilt. A node
