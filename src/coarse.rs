@@ -65,14 +65,16 @@ pub fn coarsen(grid: GridGraph, spacing: [f64; 3], cell: f64, origin: [i64; 3]) 
             best
         })
         .collect();
+    // Two buffers, swapped every round (no array allocated per round).
+    let mut next = centre.clone();
     for _ in 0..MAX_DOUBLING {
-        let next: Vec<u32> = centre.par_iter().map(|&p| centre[p as usize]).collect();
-        let done = next == centre;
-        centre = next;
-        if done {
+        next.par_iter_mut().zip(&centre).for_each(|(q, &p)| *q = centre[p as usize]);
+        std::mem::swap(&mut centre, &mut next);
+        if next == centre {
             break;
         }
     }
+    drop(next);
     // The box of every voxel, as one key ([`box_key`]), computed once in parallel: the
     // union below only compares the keys of neighbours.
     let coarsest = coarsest(spacing);

@@ -189,56 +189,62 @@ impl Search {
     }
 }
 
-/// Rows per parallel task of the cycle searches (fixed, like every split here).
-const SEARCH_CHUNK: usize = 4096;
+/// Nodes per parallel task of the cycle searches (fixed, like every split here).
+const SEARCH_ROWS: usize = 1024;
 
-/// `f(nodes)` on the shortest cycle through every edge `(u, v)`, `u < v`, outside
-/// the breadth-first forest, if that cycle has fewer than `max_nodes` nodes; the
-/// results in order of the edges. One scratch per worker thread.
-fn map_short_cycles<R: Send>(g: &Csr, max_nodes: usize, f: impl Fn(&[u32]) -> R + Sync) -> Vec<R> {
-    let forest = forest(g);
-    let closing: Vec<(u32, u32)> = (0..g.nodes())
-        .into_par_iter()
-        .flat_map_iter(|u| {
-            let parent = &forest.parent;
-            g.neighbours(u).iter().filter_map(move |&v| {
-                let tree = parent[v as usize] == u as u32 || parent[u] == v;
-                (v as usize > u && !tree).then_some((u as u32, v))
-            })
-        })
-        .collect();
-    drop(forest);
+/// `step(acc, nodes)` on the shortest cycle through every edge `(u, v)`, `u < v`,
+/// outside the breadth-first forest, if that cycle has fewer than `max_nodes` nodes,
+/// in order of the edges, folded into one accumulator per fixed block of
+/// [`SEARCH_ROWS`] nodes `u`; the accumulators in block order. The closing edges are
+/// found as each block is searched, never listed: a list of them and of one result
+/// per edge was the run's peak memory on thin-vessel volumes (the first measure of
+/// the coarse start graph). One scratch per worker thread.
+fn fold_short_cycles<A: Send>(
+    g: &Csr,
+    max_nodes: usize,
+    init: impl Fn() -> A + Sync,
+    step: impl Fn(&mut A, &[u32]) + Sync,
+) -> Vec<A> {
+    let parent = forest(g).parent;
     let scratch = PerThread::new(Search::new);
-    let parts: Vec<Vec<R>> = closing
-        .par_chunks(SEARCH_CHUNK)
-        .map(|edges| {
+    let blocks = g.nodes().div_ceil(SEARCH_ROWS);
+    (0..blocks)
+        .into_par_iter()
+        .map(|b| {
             scratch.with(|s| {
-                let mut out = Vec::new();
+                let mut acc = init();
                 // A run asked to stop gets a partial result, which it discards.
                 if crate::cancel::requested() {
-                    return out;
+                    return acc;
                 }
-                for &(u, v) in edges {
-                    if s.shortest_cycle_through(g, u, v, max_nodes) {
-                        out.push(f(&s.path));
+                for u in b * SEARCH_ROWS..((b + 1) * SEARCH_ROWS).min(g.nodes()) {
+                    for &v in g.neighbours(u) {
+                        let tree = parent[v as usize] == u as u32 || parent[u] == v;
+                        if v as usize > u && !tree && s.shortest_cycle_through(g, u as u32, v, max_nodes) {
+                            step(&mut acc, &s.path);
+                        }
                     }
                 }
-                out
+                acc
             })
         })
-        .collect();
-    parts.into_iter().flatten().collect()
+        .collect()
 }
 
 /// For every edge `(u, v)`, `u < v`, outside the breadth-first forest, the shortest
 /// cycle through it if that has fewer than `max_nodes` nodes; in order of the edges.
 pub fn short_cycles(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> Vec<Cycle> {
-    map_short_cycles(g, max_nodes, |nodes| Cycle { nodes: nodes.to_vec(), area: vector_area(nodes, positions) })
+    let parts = fold_short_cycles(g, max_nodes, Vec::new, |out: &mut Vec<Cycle>, nodes| {
+        out.push(Cycle { nodes: nodes.to_vec(), area: vector_area(nodes, positions) })
+    });
+    parts.into_iter().flatten().collect()
 }
 
-/// `A_t`: the summed area of the short fundamental cycles (summed in edge order).
+/// `A_t`: the summed area of the short fundamental cycles (summed in edge order
+/// within each block of [`SEARCH_ROWS`] nodes, then the blocks' sums in order).
 pub fn short_cycle_area(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> f64 {
-    map_short_cycles(g, max_nodes, |nodes| vector_area(nodes, positions)).iter().fold(0.0, |acc, a| acc + a)
+    let parts = fold_short_cycles(g, max_nodes, || 0.0, |acc: &mut f64, nodes| *acc += vector_area(nodes, positions));
+    parts.iter().sum()
 }
 
 /// One refinement move (eq. 11): every node of a kept cycle (area below
@@ -327,9 +333,11 @@ mod tests {
 
     #[test]
     fn every_cross_section_square_of_a_block_is_found() {
-        // A 6-connected 4 x 5 x 6 block: one unit square per closing edge, many
-        // searches per worker (the reused visit stamps must not leak between them).
-        let mask = ndarray::Array3::<u8>::ones((4, 5, 6));
+        // A 6-connected 10 x 12 x 14 block: one unit square per closing edge, many
+        // searches per worker (the reused visit stamps must not leak between them),
+        // over more than one block of searched nodes.
+        let mask = ndarray::Array3::<u8>::ones((10, 12, 14));
+        assert!(mask.len() > SEARCH_ROWS);
         let e = crate::volume::edt_squared(mask.view(), [1.0; 3]).unwrap();
         let g = crate::grid::build(mask.view(), &e, [1.0; 3], &crate::params::Params::default()).unwrap();
         let c = short_cycles(&g.graph, &g.positions, 10);
@@ -337,6 +345,9 @@ mod tests {
         assert!(c.iter().all(|c| c.nodes.len() == 4 && (c.area - 1.0).abs() < 1e-12));
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         assert_eq!(pool.install(|| short_cycles(&g.graph, &g.positions, 10)), c);
+        let area = short_cycle_area(&g.graph, &g.positions, 10);
+        assert_eq!(area, c.len() as f64);
+        assert_eq!(pool.install(|| short_cycle_area(&g.graph, &g.positions, 10)).to_bits(), area.to_bits());
     }
 
     #[test]

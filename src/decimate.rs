@@ -5,7 +5,7 @@
 //!
 //! The cell key also carries the mask component, so nodes of different mask
 //! components never merge (each component stays one graph component), and nodes
-//! asked to keep their identity (skeleton-like nodes) get a key of their own.
+//! asked to keep their identity (skeleton-like nodes) get a cell of their own.
 //! New nodes are numbered in key order: component, then cell in C order.
 
 use crate::error::{Error, Result};
@@ -39,10 +39,24 @@ pub fn cell_of(p: &[f64; 3], c: f64) -> Result<[i64; 3]> {
     Ok(out)
 }
 
-/// Sort key: component (32 bits) | cell (3 × 21 bits) | identity tag (32 bits).
-fn key(component: u32, cell: [i64; 3], tag: u32) -> u128 {
+/// Sort key of node `node`: component (32 bits) | cell (3 × 21 bits) | kept (1 bit) |
+/// node (32 bits). In key order, nodes of one cell are together, the kept ones after
+/// the others, each in node order; one `u128` a node rather than a key and a node
+/// index (32 bytes with padding), at the first iteration's decimation, a peak of the
+/// run.
+fn key(component: u32, cell: [i64; 3], kept: bool, node: u32) -> u128 {
     let packed = cell.iter().fold(0u128, |acc, &x| (acc << 21) | (x + CELL_LIMIT) as u128);
-    ((component as u128) << 96) | (packed << 32) | tag as u128
+    ((component as u128) << 96) | (packed << 33) | ((kept as u128) << 32) | node as u128
+}
+
+/// The node of a [`key`].
+fn node_of(key: u128) -> u32 {
+    key as u32
+}
+
+/// Nodes of keys `a` and `b` share a cell: same component and cell, neither kept.
+fn same_cell(a: u128, b: u128) -> bool {
+    a >> 32 == b >> 32 && (a >> 32) & 1 == 0
 }
 
 /// Edges shorter than this fraction of the cell size join their nodes' clusters.
@@ -69,13 +83,9 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
     // vector of known length (collecting `Result`s goes through pieces that are then
     // copied, twice the keys' 32 bytes a node at once).
     g.positions.par_iter().try_for_each(|p| cell_of(p, c).map(|_| ()))?;
-    let mut order: Vec<(u128, u32)> = (0..n)
+    let mut order: Vec<u128> = (0..n)
         .into_par_iter()
-        .map(|i| {
-            let tag = if keep[i] { i as u32 + 1 } else { 0 };
-            let cell = cell_of(&g.positions[i], c).unwrap_or_default();
-            (key(g.component[i], cell, tag), i as u32)
-        })
+        .map(|i| key(g.component[i], cell_of(&g.positions[i], c).unwrap_or_default(), keep[i], i as u32))
         .collect();
     order.par_sort_unstable();
     // Each pass takes up to a second on the largest graphs.
@@ -84,10 +94,10 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
     let mut cell = vec![0u32; n];
     let mut cells = 0u32;
     for s in 0..n {
-        if s > 0 && order[s].0 != order[s - 1].0 {
+        if s > 0 && !same_cell(order[s - 1], order[s]) {
             cells += 1;
         }
-        cell[order[s].1 as usize] = cells;
+        cell[node_of(order[s]) as usize] = cells;
     }
     let cells = if n > 0 { cells as usize + 1 } else { 0 };
     // Every array is dropped once used: the decimation of the first contraction
@@ -181,35 +191,44 @@ pub(crate) fn members_by_cluster(map: &[u32], clusters: usize) -> (Vec<usize>, V
 
 /// The graph of the clusters: cluster `k` (members `members[start[k]..start[k + 1]]`)
 /// is joined to every other cluster that a member's neighbour belongs to (`map`).
-/// Built row by row in parallel blocks of clusters, appended in order.
+/// Built row by row in parallel blocks of clusters, each block's rows gathered in a
+/// worker's scratch and kept in a list of exactly their length (a list grown in place
+/// would keep up to twice that), then appended in order, each block's list freed once
+/// appended.
 pub(crate) fn quotient(g: &Csr, map: &[u32], start: &[usize], members: &[u32]) -> Csr {
     let clusters = start.len() - 1;
-    let parts: Vec<(Vec<usize>, Vec<u32>)> = (0..clusters.div_ceil(ROW_BLOCK))
+    let parts: Vec<(Vec<u32>, Box<[u32]>)> = (0..clusters.div_ceil(ROW_BLOCK))
         .into_par_iter()
-        .map(|b| {
-            let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(clusters);
-            let (mut lens, mut targets, mut row) = (Vec::with_capacity(rows.len()), vec![], vec![]);
-            for k in rows {
-                row.clear();
-                for &i in &members[start[k]..start[k + 1]] {
-                    row.extend(g.neighbours(i as usize).iter().map(|&j| map[j as usize]).filter(|&m| m as usize != k));
+        .map_init(
+            || (Vec::new(), Vec::new()),
+            |(targets, row), b| {
+                let rows = b * ROW_BLOCK..((b + 1) * ROW_BLOCK).min(clusters);
+                let mut lens = Vec::with_capacity(rows.len());
+                targets.clear();
+                for k in rows {
+                    row.clear();
+                    for &i in &members[start[k]..start[k + 1]] {
+                        row.extend(
+                            g.neighbours(i as usize).iter().map(|&j| map[j as usize]).filter(|&m| m as usize != k),
+                        );
+                    }
+                    row.sort_unstable();
+                    row.dedup();
+                    lens.push(row.len() as u32);
+                    targets.extend_from_slice(row);
                 }
-                row.sort_unstable();
-                row.dedup();
-                lens.push(row.len());
-                targets.extend_from_slice(&row);
-            }
-            (lens, targets)
-        })
+                (lens, targets.as_slice().into())
+            },
+        )
         .collect();
     let mut offsets = Vec::with_capacity(clusters + 1);
     offsets.push(0);
     let mut targets = Vec::with_capacity(parts.iter().map(|p| p.1.len()).sum());
     for (lens, t) in parts {
         for l in lens {
-            offsets.push(offsets[offsets.len() - 1] + l);
+            offsets.push(offsets[offsets.len() - 1] + l as usize);
         }
-        targets.extend(t);
+        targets.extend_from_slice(&t);
     }
     Csr { offsets, targets }
 }

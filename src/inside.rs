@@ -104,25 +104,54 @@ pub fn keep_inside<T: Voxel>(positions: &[[f64; 3]], mask: ArrayView3<'_, T>, sp
         .collect()
 }
 
-/// Every node `k` of `moved` that `held(k)` selects and that the contraction's solve
-/// took from a foreground voxel (its position in `before`) onto a background voxel or
-/// out of the array goes back where it was (not in the paper). The flow pulls a loop
-/// around a narrow hole of the mask across the hole and shut, and cuts the corner of a
-/// thin curved vessel through the background: both are moves off the mask. A node
-/// already off the mask moves freely, so that it can come back (README, "Where we
-/// differ", 18).
+/// The positions a contraction step may put back ([`undo_moves_off_the_mask`]): every
+/// node `k` that `held(k)` selects and that starts on the mask, with its position.
+/// Only those are kept, not every node's position before the move: on thin-vessel
+/// volumes most nodes of the first iterations are not held (their degree is above 2),
+/// and a copy of every position was a sixth of the contraction's peak memory.
+#[derive(Debug, Default)]
+pub struct HeldOnMask {
+    nodes: Vec<u32>,
+    positions: Vec<[f64; 3]>,
+}
+
+impl HeldOnMask {
+    /// The nodes of `before` (positions, in the solve's order) that `held` selects
+    /// and that lie on `mask`.
+    pub fn new<T: Voxel>(
+        before: &[[f64; 3]],
+        held: &(dyn Fn(usize) -> bool + Sync),
+        mask: ArrayView3<'_, T>,
+        spacing: [f64; 3],
+    ) -> HeldOnMask {
+        let (nodes, positions) = before
+            .par_iter()
+            .enumerate()
+            .filter(|&(k, &b)| held(k) && on_mask(&mask, b, spacing))
+            .map(|(k, &b)| (k as u32, b))
+            .unzip();
+        HeldOnMask { nodes, positions }
+    }
+}
+
+/// Every node of `held` that the contraction's solve took from its foreground voxel
+/// onto a background voxel or out of the array (its new position in `moved`) goes
+/// back where it was (not in the paper). The flow pulls a loop around a narrow hole
+/// of the mask across the hole and shut, and cuts the corner of a thin curved vessel
+/// through the background: both are moves off the mask. A node already off the mask
+/// moves freely, so that it can come back (README, "Where we differ", 18).
 pub fn undo_moves_off_the_mask<T: Voxel>(
     moved: &mut [[f64; 3]],
-    before: &[[f64; 3]],
-    held: &(dyn Fn(usize) -> bool + Sync),
+    held: &HeldOnMask,
     mask: ArrayView3<'_, T>,
     spacing: [f64; 3],
 ) {
-    moved.par_iter_mut().zip(before.par_iter()).enumerate().for_each(|(k, (q, &b))| {
-        if held(k) && !on_mask(&mask, *q, spacing) && on_mask(&mask, b, spacing) {
+    for (&k, &b) in held.nodes.iter().zip(&held.positions) {
+        let q = &mut moved[k as usize];
+        if !on_mask(&mask, *q, spacing) {
             *q = b;
         }
-    });
+    }
 }
 
 /// Base cells taken off the EDT radii the loop rule compares holes with (the
@@ -191,7 +220,8 @@ mod tests {
                     .map(at)
                     .to_vec();
             let mut moved = to.clone();
-            undo_moves_off_the_mask(&mut moved, &before, &|k| k != 5, line.view(), spacing);
+            let held = HeldOnMask::new(&before, &|k| k != 5, line.view(), spacing);
+            undo_moves_off_the_mask(&mut moved, &held, line.view(), spacing);
             assert_eq!(moved, vec![to[0], before[1], to[2], before[3], to[4], to[5]], "spacing {spacing:?}");
         }
     }

@@ -33,6 +33,7 @@
 //! | [`blocks_sprouts`] | chunked runs: the blocks' sprouts attached to the merged graph | — |
 //! | [`graph`] | the output [`Skeleton`] | §IV |
 //! | [`memory`] | the run's peak memory estimated from the mask, the `max_memory` guard | — |
+//! | [`allocator`] | the programs' heap allocator: large blocks mapped on their own, returned when freed | — |
 //! | [`shapes`] | analytic test volumes and the built-in demo volume | — |
 //!
 //! Every stage is a pure function of (mask block, spacing, parameters) and every
@@ -48,6 +49,7 @@
 //! assert!(skel.degrees().iter().all(|&d| d <= 2)); // a path
 //! ```
 
+pub mod allocator;
 pub mod blocks;
 pub mod blocks_route;
 pub mod blocks_sprouts;

@@ -10,15 +10,15 @@ use crate::ends::{extend_ends, follow_ends};
 use crate::error::{Error, Result};
 use crate::fate::{core_owners, follow, VoxelFate};
 use crate::graph::{RunInfo, Skeleton, StageTime};
-use crate::grid::{self, filled, Csr};
-use crate::inside::{keep_inside, loop_of_the_mask, undo_moves_off_the_mask, LOOP_RADIUS_SHIFT};
+use crate::grid::{self, Csr};
+use crate::inside::{keep_inside, loop_of_the_mask, undo_moves_off_the_mask, HeldOnMask, LOOP_RADIUS_SHIFT};
 use crate::laplacian;
 use crate::laplacian::NormalOperator;
 use crate::medial;
 use crate::memory;
 use crate::packed::{PackedCsr, PackedNodes};
 use crate::params::{AreaReference, Params, STALL_AREA};
-use crate::precondition::{slab_axes, slab_order, Krylov, NormalMatrix};
+use crate::precondition::{gather_in_place, scatter_in_place, slab_axes, slab_order, Krylov, NormalMatrix};
 use crate::prune::prune_skeleton;
 use crate::radius::output_radii;
 use crate::resample;
@@ -152,19 +152,22 @@ pub fn contract_step_mapped<T: Voxel>(
         clock.time("solve", || PackedNodes::new(std::mem::take(&mut g.radii), std::mem::take(&mut g.component)));
     // The assembly stops early too (a partial matrix).
     cancel::checkpoint()?;
-    let start = match &order {
-        Some(order) => {
-            let positions = std::mem::take(&mut g.positions);
-            clock.time("solve", || order.par_iter().map(|&i| positions[i as usize]).collect())
-        }
-        None => std::mem::take(&mut g.positions),
-    };
+    // The positions in the solve's order, permuted in place.
+    let mut start = std::mem::take(&mut g.positions);
+    if let Some(order) = &order {
+        clock.time("solve", || gather_in_place(&mut start, order));
+    }
+    // The rule holds the nodes of curves (degree 1 or 2): a loop's ring, a bent vessel.
+    // The knots the flow has still to collapse (nodes of degree 3 or more) move freely:
+    // held, they stop collapsing where the mask is a voxel thin, and the contraction
+    // ran to `max_iterations` on two VascuSynth trees. Their positions before the move,
+    // in the solve's order, are kept from here rather than from the start, so that
+    // they are not held while `M` is assembled.
+    let node = |k: usize| order.as_ref().map_or(k, |o| o[k] as usize);
+    let curve = |k: usize| g.graph.neighbours(node(k)).len() <= 2;
+    let held = clock.time("solve", || HeldOnMask::new(&start, &curve, mask, spacing));
     let graph = clock.time("solve", || PackedCsr::new(std::mem::take(&mut g.graph)));
     return_free_memory();
-    // The positions before the move, in the solve's order, for the moves to undo: kept
-    // from here rather than from the start, so that they are not held while `M` is
-    // assembled (the contraction's peak).
-    let before = clock.time("solve", || start.clone());
     let k = clock.time("solve", || Krylov::displacement(&m, start));
     let (mut moved, stats) = clock.time("solve", || solver::solve(&m, k, tol, p.cg_max_iterations));
     drop(m);
@@ -172,25 +175,13 @@ pub fn contract_step_mapped<T: Voxel>(
     cancel::checkpoint()?;
     return_free_memory();
     g.graph = clock.time("solve", || graph.unpack());
-    // The rule holds the nodes of curves (degree 1 or 2): a loop's ring, a bent vessel.
-    // The knots the flow has still to collapse (nodes of degree 3 or more) move freely:
-    // held, they stop collapsing where the mask is a voxel thin, and the contraction
-    // ran to `max_iterations` on two VascuSynth trees.
-    let node = |k: usize| order.as_ref().map_or(k, |o| o[k] as usize);
-    let curve = |k: usize| g.graph.neighbours(node(k)).len() <= 2;
-    clock.time("solve", || undo_moves_off_the_mask(&mut moved, &before, &curve, mask, spacing));
-    drop(before);
+    clock.time("solve", || undo_moves_off_the_mask(&mut moved, &held, mask, spacing));
+    drop(held);
     (g.radii, g.component) = clock.time("solve", || nodes.unpack());
-    g.positions = match &order {
-        Some(order) => clock.time("solve", || {
-            let mut positions = filled(order.len(), [0.0; 3]);
-            for (&i, q) in order.iter().zip(moved) {
-                positions[i as usize] = q;
-            }
-            positions
-        }),
-        None => moved,
-    };
+    if let Some(order) = &order {
+        clock.time("solve", || scatter_in_place(&mut moved, order));
+    }
+    g.positions = moved;
     let (next, map) = clock.time("decimate", || decimate_mapped(&g, &skeletal, c))?;
     // The old graph is freed before the next stage (the cycles' area) allocates.
     drop((g, skeletal));
@@ -358,6 +349,7 @@ impl Skeletonizer {
         };
         follow(&mut fate, &map);
         drop(map);
+        return_free_memory();
         stop.check()?;
 
         // Contraction (Algorithm 1).

@@ -157,6 +157,21 @@ impl Stripe {
         Stripe { outer_at: vec![0], upper_at: vec![0], ..Stripe::default() }
     }
 
+    /// Empty it for the next stripe, keeping its buffers: a worker builds every stripe
+    /// in the same scratch without growing it again (a new scratch per stripe left the
+    /// freed buffers between the compact copies, resident until the next trim).
+    fn clear(&mut self) {
+        let Ahead::Far(ahead) = &mut self.ahead else { unreachable!("a stripe is built with u32 columns") };
+        ahead.clear();
+        for v in [&mut self.outer_at, &mut self.upper_at] {
+            v.clear();
+            v.push(0);
+        }
+        self.outer.clear();
+        self.upper.clear();
+        self.reach = 0;
+    }
+
     /// Append row `j` (entries in increasing column order) of a matrix in Gauss–Seidel
     /// blocks of `block` rows: its entries in other blocks and its in-block upper ones.
     /// The columns are built as [`Ahead::Far`]; see [`Stripe::compact`].
@@ -228,6 +243,37 @@ pub fn slab_order(positions: &[V3], c: f64, axes: [usize; 3]) -> Vec<u32> {
         positions.par_iter().enumerate().map(|(i, p)| (axes.map(|d| (p[d] / c).round() as i32), i as u32)).collect();
     keyed.par_sort_unstable();
     keyed.into_par_iter().map(|(_, i)| i).collect()
+}
+
+/// `v[a] = v[order[a]]` for every `a` at once (the rows of [`slab_order`] from node
+/// order), in place: a copy would hold the positions twice at the contraction's peak.
+/// `order` must be a permutation of `0..v.len()`.
+pub fn gather_in_place<T: Copy>(v: &mut [T], order: &[u32]) {
+    let mut done = vec![false; v.len()];
+    for a in 0..v.len() {
+        let (first, mut x) = (v[a], a);
+        // Each cycle of the permutation once; a node is written once.
+        while !done[x] {
+            done[x] = true;
+            let next = order[x] as usize;
+            v[x] = if next == a { first } else { v[next] };
+            x = next;
+        }
+    }
+}
+
+/// `v[order[a]] = v[a]` for every `a` at once (back to node order from
+/// [`slab_order`]'s), in place. `order` must be a permutation of `0..v.len()`.
+pub fn scatter_in_place<T: Copy>(v: &mut [T], order: &[u32]) {
+    let mut done = vec![false; v.len()];
+    for a in 0..v.len() {
+        let (mut carry, mut x) = (v[a], order[a] as usize);
+        while !done[x] {
+            done[x] = true;
+            carry = std::mem::replace(&mut v[x], carry);
+            x = order[x] as usize;
+        }
+    }
 }
 
 /// Rows per stripe of `M` as a power of two `1 << shift`: [`ROW_BLOCK`], or fewer if
@@ -384,7 +430,7 @@ impl NormalMatrix {
             .enumerate()
             .map(|(b, diag)| {
                 scratch.with(|(sum, stripe)| {
-                    *stripe = Stripe::new();
+                    stripe.clear();
                     // A run asked to stop ([`crate::cancel`]) discards the matrix.
                     if crate::cancel::requested() {
                         return Stripe::new();
@@ -786,6 +832,22 @@ mod tests {
         let shift = stripe_shift(&Csr::from_sorted_edges(n, &star));
         assert!((1u64 << shift) * n as u64 <= u32::MAX as u64);
         assert!((2u64 << shift) * n as u64 > u32::MAX as u64);
+    }
+
+    /// In-place gathers and scatters agree with copies, over permutations with one
+    /// cycle, fixed points and several cycles.
+    #[test]
+    fn permutations_in_place_match_copies() {
+        let orders: [&[u32]; 4] = [&[], &[0, 1, 2], &[1, 2, 3, 4, 0], &[3, 0, 2, 5, 1, 4, 7, 6]];
+        for order in orders {
+            let v: Vec<u64> = (0..order.len() as u64).map(|i| 10 * i + 7).collect();
+            let mut g = v.clone();
+            gather_in_place(&mut g, order);
+            assert_eq!(g, order.iter().map(|&i| v[i as usize]).collect::<Vec<_>>(), "{order:?}");
+            let mut back = g.clone();
+            scatter_in_place(&mut back, order);
+            assert_eq!(back, v, "{order:?}");
+        }
     }
 
     #[test]

@@ -225,8 +225,9 @@ class Skeletonizer:
         ----------
         mask : numpy.ndarray
             3-D array, any memory order and strides. It is made a mask by the input
-            rule that :func:`load_volume` and the command line apply too: bool (read
-            without a copy), integers with zero and at most one other value, or floats
+            rule that :func:`load_volume` and the command line apply too: bool, and
+            bytes that are all 0 or 1 (both read without a copy), integers with zero
+            and at most one other value, or floats
             that are all 0 or 1 are binary (non-zero = vessel); anything else (a label
             image, a probability map, NaN) is a ``ValueError`` naming the values found,
             unless ``threshold`` or ``label`` says how to binarise it.

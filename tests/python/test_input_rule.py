@@ -137,6 +137,28 @@ def test_bool_mask_is_used_without_a_copy_and_binarise_copies_the_rest(branching
     np.testing.assert_array_equal(_core.binarise(branching, threshold=0), branching)
 
 
+def test_a_byte_mask_of_zeros_and_ones_is_viewed_not_copied(branching):
+    for dtype in (np.uint8, np.int8):
+        data = branching.astype(dtype)
+        mask = _core.binarise(data)
+        assert mask.dtype == np.bool_
+        assert np.shares_memory(mask, data), dtype
+        np.testing.assert_array_equal(mask, branching)
+        # The same graph as from the bool mask.
+        assert_same_graph(vesselflow.skeletonize(data), vesselflow.skeletonize(branching))
+    # Other vessel values, or a rule, make a new bool array of the mask.
+    byte = branching.astype(np.uint8)
+    for data, rule in ((byte * 255, {}), (byte, {"label": 1})):
+        mask = _core.binarise(data, **rule)
+        assert mask.dtype == np.bool_
+        assert not np.shares_memory(mask, data)
+        assert mask.view(np.uint8).max() == 1
+        np.testing.assert_array_equal(mask, branching)
+    # A label image of bytes is still refused.
+    with pytest.raises(ValueError, match="label="):
+        _core.binarise(label_image(branching).astype(np.uint8))
+
+
 def test_scalar_spacing_is_isotropic(tube):
     expected = vesselflow.skeletonize(tube, spacing=(0.5, 0.5, 0.5))
     graph = vesselflow.skeletonize(tube, 0.5)

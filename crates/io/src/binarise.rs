@@ -132,6 +132,12 @@ impl<T: Sample> Binariser<T> {
         out.extend(values.into_iter().map(|x| self.vessel(x)));
     }
 
+    /// Under [`MaskRule::Binary`], the one non-zero integer seen so far (`None` if
+    /// none, or for floats).
+    pub fn vessel_value(&self) -> Option<T> {
+        self.first
+    }
+
     /// True once the image is known not to be a mask (the caller may stop reading).
     pub fn refused(&self) -> bool {
         self.offending.is_some()

@@ -11,8 +11,10 @@ use vesselflow_io::{Binariser, MaskRule, Sample};
 use crate::errors;
 
 /// The mask of `data` (any shape) by the input rule: `data` itself if it is bool and
-/// neither `threshold` nor `label` is given, else a new bool array (`data > threshold`,
-/// `data == label`, or the binary image's non-zero voxels). An image that is not a
+/// neither `threshold` nor `label` is given, a bool view of it if it is a binary image
+/// of bytes whose values are 0 and 1 (the usual segmentation file: no copy of the
+/// volume), else a new bool array (`data > threshold`, `data == label`, or the binary
+/// image's non-zero voxels). An image that is not a
 /// mask, or both `threshold` and `label`, is a `ValueError`; a dtype that cannot hold
 /// a mask a `TypeError`.
 #[pyfunction]
@@ -47,6 +49,8 @@ pub fn mask_of<'py>(py: Python<'py>, data: &Bound<'py, PyAny>, rule: MaskRule) -
         // A NumPy bool byte may hold any value (`uint8_array.view(bool)`), which a Rust
         // `bool` must not: read bools as bytes, non-zero = true.
         (b'b', 1) => typed::<u8, bool>(py, &array.call_method1("view", ("u1",))?, rule, |x| x != 0),
+        (b'i', 1) if rule == MaskRule::Binary && zeros_and_ones::<i8>(py, data)? => data.call_method1("view", ("?",)),
+        (b'u', 1) if rule == MaskRule::Binary && zeros_and_ones::<u8>(py, data)? => data.call_method1("view", ("?",)),
         (b'i', 1) => typed::<i8, i8>(py, data, rule, |x| x),
         (b'i', 2) => typed::<i16, i16>(py, data, rule, |x| x),
         (b'i', 4) => typed::<i32, i32>(py, data, rule, |x| x),
@@ -62,6 +66,24 @@ pub fn mask_of<'py>(py: Python<'py>, data: &Bound<'py, PyAny>, rule: MaskRule) -
             Err(PyTypeError::new_err(format!("mask dtype {dtype} is not bool, integer or float: it cannot be a mask")))
         }
     }
+}
+
+/// Whether every value of the byte image `data` is 0 or 1 (one pass, the GIL
+/// released, nothing allocated): such an image is its own mask, read as bool.
+fn zeros_and_ones<T: Element + Sample + Sync>(py: Python<'_>, data: &Bound<'_, PyAny>) -> PyResult<bool> {
+    let array = data.cast::<PyArrayDyn<T>>().map_err(|_| PyRuntimeError::new_err("mask dtype dispatch failed"))?;
+    let readonly = array.try_readonly().map_err(|e| PyValueError::new_err(format!("mask cannot be read: {e}")))?;
+    let view = readonly.as_array();
+    Ok(py.detach(|| {
+        let mut binariser = Binariser::<T>::new(MaskRule::Binary);
+        for &x in view.iter() {
+            binariser.vessel(x);
+            if binariser.refused() {
+                return false;
+            }
+        }
+        binariser.vessel_value().is_none_or(|v| v.to_f64() == 1.0)
+    }))
 }
 
 /// Apply the rule to `data` of element type `T`, each value seen as `convert(value)`,

@@ -18,6 +18,10 @@ mod watch;
 
 use pyo3::prelude::*;
 
+/// Large blocks mapped on their own (see `vesselflow::allocator`).
+#[global_allocator]
+static ALLOCATOR: vesselflow::allocator::Allocator = vesselflow::allocator::Allocator;
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
