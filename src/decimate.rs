@@ -81,7 +81,7 @@ pub fn decimate_mapped(g: &NodeGraph, keep: &[bool], c: f64) -> Result<(NodeGrap
     let n = g.positions.len();
     // Positions are checked first, so that the keys are collected straight into one
     // vector of known length (collecting `Result`s goes through pieces that are then
-    // copied, twice the keys' 32 bytes a node at once).
+    // copied, twice the keys' 16 bytes a node at once).
     g.positions.par_iter().try_for_each(|p| cell_of(p, c).map(|_| ()))?;
     let mut order: Vec<u128> = (0..n)
         .into_par_iter()

@@ -158,8 +158,7 @@ impl Stripe {
     }
 
     /// Empty it for the next stripe, keeping its buffers: a worker builds every stripe
-    /// in the same scratch without growing it again (a new scratch per stripe left the
-    /// freed buffers between the compact copies, resident until the next trim).
+    /// in the same scratch without growing it again.
     fn clear(&mut self) {
         let Ahead::Far(ahead) = &mut self.ahead else { unreachable!("a stripe is built with u32 columns") };
         ahead.clear();
