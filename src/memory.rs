@@ -14,30 +14,31 @@
 //! | count | row offsets of the foreground | `8 n0 n1` |
 //! | edt | row offsets; the EDT at the `N` foreground voxels (`f32`); one plane of run lengths (`u32`); per thread a plane buffer (`f32`, resident only where written) and envelope scratch | `8 n0 n1 + 4 N + 4 n1 n2 + T (4 min(n1 n2, N) + 40 max(n1, n2))` |
 //! | grid | the EDT; the foreground rows (`8 n0 n1 + 4 N`); per node its base-neighbour slots, degree, CSR, union-find, positions, radii, components | `8 n0 n1 + GRID[c] N` |
-//! | contract | the EDT and the foreground rows, kept for the medial stage (`8 n0 n1 + 4 N`); skeletal flags and slab order; while `M` is assembled the node graph (CSR, positions, radii, components) and the l2-norm and medial Laplacians (one `f64` row total per node each: their weights are computed as `M` reads them); during the solve the whole node graph packed ([`crate::packed`], ~15 bytes a node on the 256³ bed), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) the four conjugate-gradient vectors (one `f64`, three `f32`: 60 bytes) and the positions before the move (24 bytes, for the moves off the mask to undo) | `8 n0 n1 + 4 N + CONTRACT[c] N` |
+//! | contract | the EDT and the foreground rows, kept for the medial stage (`8 n0 n1 + 4 N`); skeletal flags and slab order; while `M` is assembled the node graph (CSR, positions, radii, components) and the l2-norm and medial Laplacians (one `f64` row total per node each: their weights are computed as `M` reads them); during the solve the whole node graph packed ([`crate::packed`], ~15 bytes a node on the 256³ bed), `M` (`f32` values, in-block columns as `u16` distances: ~6 bytes per stored entry) the four conjugate-gradient vectors (one `f64`, three `f32`: 60 bytes) and the held nodes' positions before the move (28 bytes a held node, for the moves off the mask to undo) | `8 n0 n1 + 4 N + CONTRACT[c] N` |
 //!
 //! `CONTRACT[c]` (bytes per foreground voxel at connectivity `c`) is the largest
-//! measured peak, over the mask and [`BASE`], with a margin of at least 10 %: the
-//! peak RSS of a run from Python at 2 threads minus the RSS once the mask is loaded,
-//! on the 256³ synthetic bed (223 B per foreground voxel at 6-connectivity; ~194 B since
-//! the node graph is packed during the solve, ~170 B since the Laplacians keep row totals
-//! only and three solver vectors are `f32`, so the bound now has more margin there) and the 18
-//! volumes of `../shared/data` (6: 224–305 over those with more than 50 000
-//! foreground voxels, the most on the thick vessels of `aorta_ct_03mm` and the
-//! two-photon stacks, 304 and 304 on `tpm_santos2015`; 18: 420–591; 26: 545–782, the
-//! most on `aorta_ct_04mm` at both). Thick vessels cost the most: their rows of `M` are
-//! full (25 entries at 6-connectivity), and after the first iterations the decimated
-//! graph has fewer nodes but denser rows, so on them the second or third solve, not
-//! the first, sets the peak. `GRID[c]` is the grid stage's figure (82–96 B at
+//! measured peak, over the mask, 4 MiB and the kept EDT, with a margin of at least
+//! 10 %: the peak RSS of a run from Python at 2 threads minus the RSS once the mask is
+//! loaded, with the default parameters (the coarse start), on the volumes of
+//! `../shared/data` with more than 50 000 foreground voxels and on three thick shapes
+//! (an 80³ block of foreground, cylinders of radius 9 and 14 voxels): at 6-connectivity
+//! 79–174 B, the most on `aorta_ct_03mm` (the block 167); at 18, 189–502, the most on the
+//! block (`aorta_ct_03mm` 441); at 26, 228–677, the most on the block (`aorta_ct_03mm`
+//! 577); measured 2026-12-07. Thick vessels cost the most: the coarse start leaves vessels
+//! over [`crate::coarse::MAX_CELL_RADIUS`] one node per voxel, their rows of `M` are full
+//! (25 entries at 6-connectivity), and after the first iterations the decimated graph
+//! has fewer nodes but denser rows. `GRID[c]` is the grid stage's figure (82–96 B at
 //! 6-connectivity, of which 4 are the EDT), scaled by the base-neighbour slots at 18
 //! and 26; it stays below the contraction. Later stages (refinement, output) work on
 //! the contracted graph, a few percent of `N`, and never set the peak. [`BASE`] covers
 //! what does not grow with the mask: the allocator's arenas, the worker threads' stacks
-//! and the library's code pages (a run on 8 655 voxels peaks at 4.3 MB).
+//! and the library's code pages, and the later stages' scratch on volumes so small that
+//! they set the peak (`vascusynth_seed4_n1000_100`, 17 626 voxels: 7.8 MB in its output
+//! stage, against an estimate of 7.9 MB with a base of 4 MiB, 9.9 MB with 6).
 //!
 //! The bound is measured, not proven: a mask whose vessels are all thicker than these
 //! volumes' could need somewhat more; a mask of thin vessels (few interior voxels) needs
-//! about two thirds of it.
+//! less than half of it.
 
 use crate::error::{Error, Result};
 use crate::params::Connectivity;
@@ -45,7 +46,7 @@ use rayon::prelude::*;
 
 /// Fixed bytes of a run beyond its arrays (allocator arenas, the pool's threads, code
 /// pages): a run on a one-voxel mask, and the smallest volumes measured, stay below it.
-pub const BASE: u64 = 4 << 20;
+pub const BASE: u64 = 6 << 20;
 
 /// Bytes per foreground voxel of the grid stage's own arrays (after the EDT), by
 /// connectivity 6, 18, 26.
@@ -53,7 +54,7 @@ pub const GRID: [u64; 3] = [100, 160, 240];
 
 /// Bytes per foreground voxel at the contraction's peak, by connectivity 6, 18, 26: the
 /// largest measured, plus at least 10 % (see the module).
-pub const CONTRACT: [u64; 3] = [340, 660, 860];
+pub const CONTRACT: [u64; 3] = [200, 560, 760];
 
 /// The memory a run needs, stage by stage (bytes, beyond the input mask).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
