@@ -110,7 +110,7 @@ pub fn keep_inside<T: Voxel>(positions: &[[f64; 3]], mask: ArrayView3<'_, T>, sp
 /// first iterations are not held (their degree is above 2), and a copy of every
 /// position (24 bytes a node) was 6.6 of the 60 MB of heap at the solve of
 /// `damseh_synth2`'s first iteration.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct HeldOnMask {
     nodes: Vec<u32>,
     positions: Vec<[f64; 3]>,
