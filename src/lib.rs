@@ -65,6 +65,7 @@ pub mod fate;
 pub mod graph;
 pub mod grid;
 pub mod inside;
+pub mod junctions;
 pub mod laplacian;
 pub mod medial;
 pub mod memory;

@@ -12,6 +12,7 @@ use crate::fate::{core_owners, follow, VoxelFate};
 use crate::graph::{RunInfo, Skeleton, StageTime};
 use crate::grid::{self, Csr};
 use crate::inside::{keep_inside, loop_of_the_mask, undo_moves_off_the_mask, HeldOnMask, LOOP_RADIUS_SHIFT};
+use crate::junctions::merge_close_junctions;
 use crate::laplacian;
 use crate::laplacian::NormalOperator;
 use crate::medial;
@@ -573,10 +574,11 @@ fn check_shape<T: Voxel>(mask: ArrayView3<'_, T>) -> Result<()> {
 }
 
 /// The output's last steps, on a single run's graph and on a chunked run's merged one:
-/// the short spurs pruned ([`crate::prune`]), then the radii smoothed along the
-/// branches that are left ([`crate::smooth`]).
+/// the short spurs pruned ([`crate::prune`]), the junctions closer than half a radius
+/// joined ([`crate::junctions`]), then the radii smoothed along the branches that are
+/// left ([`crate::smooth`]).
 pub(crate) fn finish(out: Skeleton, p: &Params) -> Skeleton {
-    smooth_skeleton(prune_skeleton(out, p.prune_spurs), p.radius_smoothing)
+    smooth_skeleton(merge_close_junctions(prune_skeleton(out, p.prune_spurs)), p.radius_smoothing)
 }
 
 /// Check the output graph before it is returned: positions finite, radii finite and

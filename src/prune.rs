@@ -100,9 +100,19 @@ pub fn prune_skeleton(skeleton: Skeleton, k: f64) -> Skeleton {
     }
 }
 
+/// Every node's neighbours and the edges to them, in edge order.
+pub(crate) fn adjacency(n: usize, edges: &[[usize; 2]]) -> Vec<Vec<(usize, usize)>> {
+    let mut adjacency: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
+    for (e, &[a, b]) in edges.iter().enumerate() {
+        adjacency[a].push((b, e));
+        adjacency[b].push((a, e));
+    }
+    adjacency
+}
+
 /// The branch leaving `start` along `edge`: its nodes from `start` to the first node of
 /// degree other than 2 (or back at `start`), its edges and its length.
-fn trace(
+pub(crate) fn trace(
     start: usize,
     edge: usize,
     adjacency: &[Vec<(usize, usize)>],
@@ -142,11 +152,7 @@ fn in_lumen(spur: &[usize], rails: &[&[usize]], positions: &[[f64; 3]], radii: &
 
 /// One pass: the spurs to remove from the graph of `n` nodes and `edges`.
 fn spurs_of(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radii: &[f64], k: f64) -> Vec<Spur> {
-    let mut adjacency: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
-    for (e, &[a, b]) in edges.iter().enumerate() {
-        adjacency[a].push((b, e));
-        adjacency[b].push((a, e));
-    }
+    let adjacency = adjacency(n, edges);
     let degree = |i: usize| adjacency[i].len();
     // Every branch once, in tracing order, and the branches at each junction.
     let mut used = vec![false; edges.len()];

@@ -117,6 +117,51 @@ fn y_bifurcation_has_one_junction_at_the_fork() {
     assert_inside_dilated(&mask, &s);
 }
 
+/// Two thin tubes crossing obliquely (radius 1.7–2.6 voxels, 65°–90°, the crossing
+/// off the voxel grid): one junction of degree 4 at the crossing. The contraction
+/// resolves most such crossings as two junctions of degree 3 a fraction of a radius
+/// apart (the first three of these before such junctions were joined: src/junctions.rs).
+#[test]
+fn an_oblique_crossing_of_two_tubes_is_one_junction_of_degree_four() {
+    // Centre offset, the two directions' seeds, the angle between them, the radius.
+    type Crossing = ([f64; 3], [f64; 3], [f64; 3], f64, f64);
+    let cases: [Crossing; 4] = [
+        ([0.31, -0.22, 0.12], [0.4, 0.8, -0.3], [0.9, -0.2, 0.5], 69.0, 1.74),
+        ([-0.18, 0.27, 0.41], [-0.6, 0.3, 0.7], [0.2, 0.9, 0.1], 76.0, 1.94),
+        ([0.05, 0.44, -0.36], [0.7, -0.5, 0.4], [0.1, 0.6, 0.8], 65.0, 2.27),
+        ([-0.40, -0.13, 0.20], [0.3, 0.3, 0.9], [0.8, -0.6, 0.1], 84.0, 2.08),
+    ];
+    for (offset, seed_u, seed_v, angle, r) in cases {
+        let c: [f64; 3] = std::array::from_fn(|d| 24.0 + offset[d]);
+        let unit = |a: [f64; 3]| {
+            let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+            a.map(|x| x / n)
+        };
+        let u = unit(seed_u);
+        let along = seed_v[0] * u[0] + seed_v[1] * u[1] + seed_v[2] * u[2];
+        let v = unit(std::array::from_fn(|d| seed_v[d] - along * u[d]));
+        let (cos, sin) = (angle.to_radians().cos(), angle.to_radians().sin());
+        let w: [f64; 3] = std::array::from_fn(|d| cos * u[d] + sin * v[d]);
+        let tube = |t: [f64; 3]| Capsule {
+            a: std::array::from_fn(|d| c[d] - 18.0 * t[d]),
+            b: std::array::from_fn(|d| c[d] + 18.0 * t[d]),
+            r,
+        };
+        let mask = capsules([49, 49, 49], [1.0; 3], &[tube(u), tube(w)]);
+        let s = run(&mask);
+        let deg = s.degrees();
+        let junctions: Vec<usize> = (0..s.len()).filter(|&i| deg[i] >= 3).collect();
+        let at = |i: usize| (0..3).map(|d| (s.positions[i][d] - c[d]).powi(2)).sum::<f64>().sqrt();
+        let found: Vec<(usize, f64)> = junctions.iter().map(|&i| (deg[i], at(i))).collect();
+        assert_eq!(found.len(), 1, "crossing at {angle}°, r = {r}: junctions (degree, distance) {found:?}");
+        assert_eq!(found[0].0, 4);
+        assert!(found[0].1 <= 0.6 * r, "the junction is {} from the crossing (r = {r})", found[0].1);
+        assert_eq!(deg.iter().filter(|&&x| x == 1).count(), 4);
+        assert_eq!(cycle_rank(&s), 0);
+        assert_inside_dilated(&mask, &s);
+    }
+}
+
 #[test]
 fn a_tilted_tube_keeps_its_ends() {
     // The centreline's true ends are the centres of the capsule's end caps.
