@@ -12,8 +12,8 @@
 //! 0.105 / 0.223 with the split meetings, 0.031 / 0.073 with them joined (README, "Where
 //! we differ").
 //!
-//! The rule: a branch between two junctions (degree ≥ 3) shorter than [`MERGE`] times
-//! the larger of their radii is contracted, its two junctions becoming one node at their
+//! The rule (`merge_junctions = k`, default 0.5): a branch between two junctions
+//! (degree ≥ 3) shorter than `k` times the larger of their radii is contracted, its two junctions becoming one node at their
 //! mean position with the larger radius. Chains of such branches join a meeting of many
 //! vessels into one node. A contraction that would fold a loop of the graph onto itself
 //! (the two junctions joined by another branch of one or two edges, or a common
@@ -24,11 +24,6 @@ use crate::graph::Skeleton;
 use crate::prune::{adjacency, trace};
 use std::collections::BTreeSet;
 
-/// Largest length of a branch between two junctions that joins them, as a fraction of
-/// the larger of their radii. Chosen on the fidelity benchmark's tuning set (forests,
-/// lattices, trees and capillary beds; README, "Where we differ").
-pub const MERGE: f64 = 0.5;
-
 /// A short branch between two junctions: its length, its ends (`ends[0] < ends[1]`),
 /// its inner nodes and its edges.
 struct Short {
@@ -38,12 +33,15 @@ struct Short {
     edges: Vec<usize>,
 }
 
-/// `skeleton` with every branch between two junctions shorter than [`MERGE`] times
-/// their larger radius contracted (module doc): kept nodes renumbered densely in their
+/// `skeleton` with every branch between two junctions shorter than `k` times their
+/// larger radius contracted (module doc; `k` of 0, or less, or NaN, joins none): kept nodes renumbered densely in their
 /// old order (a joined meeting keeps its smallest junction's id), kept edges in their
 /// old order, each with its smaller node first.
-pub fn merge_close_junctions(skeleton: Skeleton) -> Skeleton {
+pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
     let Skeleton { mut positions, mut radii, edges, spacing, info } = skeleton;
+    if k.is_nan() || k <= 0.0 {
+        return Skeleton { positions, radii, edges, spacing, info };
+    }
     let n = positions.len();
     let adjacency = adjacency(n, &edges);
     let degree = |i: usize| adjacency[i].len();
@@ -59,7 +57,7 @@ pub fn merge_close_junctions(skeleton: Skeleton) -> Skeleton {
                 used[e] = true;
             }
             let end = nodes[nodes.len() - 1];
-            if end != start && degree(end) >= 3 && length < MERGE * radii[start].max(radii[end]) {
+            if end != start && degree(end) >= 3 && length < k * radii[start].max(radii[end]) {
                 let inner = nodes[1..nodes.len() - 1].to_vec();
                 short.push(Short { length, ends: [start.min(end), start.max(end)], inner, edges: path });
             }
@@ -211,7 +209,7 @@ mod tests {
 
     #[test]
     fn a_crossing_split_by_less_than_half_a_radius_becomes_one_node_of_degree_four() {
-        let out = merge_close_junctions(split_crossing(0.8));
+        let out = merge_close_junctions(split_crossing(0.8), 0.5);
         assert_eq!(out.positions.len(), 13);
         assert_eq!(out.edges.len(), 12);
         let mut degree = vec![0; out.positions.len()];
@@ -242,16 +240,23 @@ mod tests {
             positions[new_id(i)] = *p;
         }
         let edges = s.edges.iter().map(|e| [new_id(e[0]).min(new_id(e[1])), new_id(e[0]).max(new_id(e[1]))]).collect();
-        let out = merge_close_junctions(skeleton(positions, s.radii.clone(), edges));
+        let out = merge_close_junctions(skeleton(positions, s.radii.clone(), edges), 0.5);
         assert_eq!(out.positions.len(), 13);
         assert!(out.edges.iter().all(|e| e[0] < e[1]), "{:?}", out.edges);
         assert_eq!(out.edges.iter().filter(|e| e[0] == 0).count(), 4);
     }
 
     #[test]
+    fn zero_joins_nothing() {
+        let input = split_crossing(0.8);
+        let out = merge_close_junctions(input.clone(), 0.0);
+        assert_eq!((out.positions, out.edges), (input.positions, input.edges));
+    }
+
+    #[test]
     fn junctions_a_radius_apart_stay_two() {
         let input = split_crossing(2.0);
-        let out = merge_close_junctions(input.clone());
+        let out = merge_close_junctions(input.clone(), 0.5);
         assert_eq!(out.positions, input.positions);
         assert_eq!(out.edges, input.edges);
     }
@@ -267,7 +272,7 @@ mod tests {
         s.edges.push([0, extra]);
         s.edges.push([extra, 1]);
         assert_eq!(cycle_rank(&s), 1);
-        let out = merge_close_junctions(s.clone());
+        let out = merge_close_junctions(s.clone(), 0.5);
         assert_eq!(cycle_rank(&out), 1);
         assert_eq!(out.positions.len(), s.positions.len());
     }
@@ -285,7 +290,7 @@ mod tests {
             }
         }
         let radii = vec![2.0; positions.len()];
-        let out = merge_close_junctions(skeleton(positions, radii, edges));
+        let out = merge_close_junctions(skeleton(positions, radii, edges), 0.5);
         assert_eq!(out.positions.len(), 7);
         assert_eq!(out.edges.len(), 6);
         assert!(out.edges.iter().all(|e| e[0] == 0));

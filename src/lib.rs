@@ -24,6 +24,7 @@
 //! | [`radius`] | node radii: cross-section area scaled by median over RMS chord length (robust to bubbles), or the plain area, or the EDT less a constant | — |
 //! | [`edges_inside`] | edges that cross background subdivided by nodes on the mask | — |
 //! | [`prune`] | terminal spurs inside their parent's lumen removed: shorter than its radius, or a second rail beside it (`prune_spurs`) | — |
+//! | [`junctions`] | junctions linked by a branch shorter than half their radius joined into one node (`merge_junctions`) | — |
 //! | [`smooth`] | radii smoothed along the branches, a median over a few voxels (`radius_smoothing`) | — |
 //! | [`pipeline`] | the [`Skeletonizer`]: stages glued, statistics, progress | Algorithm 1 |
 //! | [`cancel`] | the [`Stop`] flag that long stages poll | — |

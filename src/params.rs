@@ -130,6 +130,11 @@ pub struct Params {
     /// lumen, a knot or a second rail beside the centreline rather than a vessel. 0
     /// keeps every spur.
     pub prune_spurs: f64,
+    /// Then join the junctions linked by a branch shorter than this many times the
+    /// larger of their radii into one node ([`crate::junctions`]): at 0.5 a meeting of
+    /// four or more vessels that the contraction split into junctions a fraction of a
+    /// radius apart. 0 keeps every junction.
+    pub merge_junctions: f64,
     /// Last of all, smooth each node's radius along its branch: the median of the radii
     /// within this many base cells of it along the branch, junctions excluded
     /// ([`crate::smooth`]). 0 keeps every node's own measurement.
@@ -193,6 +198,7 @@ impl Default for Params {
             sprouts: true,
             medial: true,
             prune_spurs: 1.0,
+            merge_junctions: 0.5,
             radius_smoothing: 4.0,
             eps_gamma: 10.0,
             alpha: 0.25,
@@ -259,7 +265,7 @@ fn in_range(name: &str, x: f64, lo: f64, hi: f64, lo_open: bool) -> Result<f64> 
 
 impl Params {
     /// Every parameter name, in documentation order.
-    pub const NAMES: [&'static str; 26] = [
+    pub const NAMES: [&'static str; 27] = [
         "connectivity",
         "reconnect_thin",
         "radius_correction",
@@ -270,6 +276,7 @@ impl Params {
         "sprouts",
         "medial",
         "prune_spurs",
+        "merge_junctions",
         "radius_smoothing",
         "eps_gamma",
         "alpha",
@@ -333,6 +340,7 @@ impl Params {
             }
             "coarse_cell" => self.coarse_cell = in_range(name, as_f64(name, v)?, 0.0, 4.0, false)?,
             "prune_spurs" => self.prune_spurs = in_range(name, as_f64(name, v)?, 0.0, 100.0, false)?,
+            "merge_junctions" => self.merge_junctions = in_range(name, as_f64(name, v)?, 0.0, 10.0, false)?,
             "radius_smoothing" => self.radius_smoothing = in_range(name, as_f64(name, v)?, 0.0, 100.0, false)?,
             "stop_ratio" => self.stop_ratio = in_range(name, as_f64(name, v)?, 0.0, 1.0, true)?,
             "stall_ratio" => self.stall_ratio = in_range(name, as_f64(name, v)?, 0.0, 0.5, false)?,
@@ -405,6 +413,7 @@ impl Params {
             ("sprouts", Value::Bool(self.sprouts)),
             ("medial", Value::Bool(self.medial)),
             ("prune_spurs", Value::Float(self.prune_spurs)),
+            ("merge_junctions", Value::Float(self.merge_junctions)),
             ("radius_smoothing", Value::Float(self.radius_smoothing)),
             ("eps_gamma", Value::Float(self.eps_gamma)),
             ("alpha", Value::Float(self.alpha)),

@@ -578,7 +578,8 @@ fn check_shape<T: Voxel>(mask: ArrayView3<'_, T>) -> Result<()> {
 /// joined ([`crate::junctions`]), then the radii smoothed along the branches that are
 /// left ([`crate::smooth`]).
 pub(crate) fn finish(out: Skeleton, p: &Params) -> Skeleton {
-    smooth_skeleton(merge_close_junctions(prune_skeleton(out, p.prune_spurs)), p.radius_smoothing)
+    let pruned = prune_skeleton(out, p.prune_spurs);
+    smooth_skeleton(merge_close_junctions(pruned, p.merge_junctions), p.radius_smoothing)
 }
 
 /// Check the output graph before it is returned: positions finite, radii finite and

@@ -77,6 +77,12 @@ class Skeletonizer:
         parent's lumen go: knots and second rails beside the centreline, not vessels;
         0 keeps every spur.
         ``vesselflow.distributed`` prunes the merged graph.
+    merge_junctions : float in [0, 10]
+        Then join two junctions linked by a branch shorter than this many times the
+        larger of their radii into one node at their mean position (not in the paper):
+        at the default 0.5, a meeting of four or more vessels (a capillary bed's
+        crossing) that the contraction resolved as junctions of degree 3 a fraction of a
+        radius apart. Loops and components are kept. 0 keeps every junction.
     radius_smoothing : float in [0, 100]
         Last of all, each node's radius becomes the median of the radii within this many
         base cells of it along its branch (not in the paper): junctions keep theirs and do
@@ -157,6 +163,7 @@ class Skeletonizer:
         sprouts: bool = True,
         medial: bool = True,
         prune_spurs: float = 1.0,
+        merge_junctions: float = 0.5,
         radius_smoothing: float = 4.0,
         eps_gamma: float = 10.0,
         alpha: float = 0.25,

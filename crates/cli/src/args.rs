@@ -107,6 +107,10 @@ fn parameter_help(name: &str) -> Option<&'static str> {
             "Last, remove terminal spurs shorter than this many radii (>= 0) of their junction, or lying within \
              this many radii of another branch of it, until none is left (0 keeps them all)."
         }
+        "merge_junctions" => {
+            "Then join two junctions linked by a branch shorter than this many times (>= 0) the larger of their \
+             radii into one node: a meeting of four or more vessels split by the contraction (0 keeps them all)."
+        }
         "radius_smoothing" => {
             "Last of all, each node's radius becomes the median of the radii within this many base cells (>= 0) of \
              it along its branch, junctions excluded (0 keeps every node's own measurement)."
