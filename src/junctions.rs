@@ -13,9 +13,9 @@
 //! we differ").
 //!
 //! The rule (`merge_junctions = k`, default 0.5): a branch between two junctions
-//! (degree ≥ 3) shorter than `k` times the larger of their radii is contracted, its two junctions becoming one node at their
-//! mean position with the larger radius. Chains of such branches join a meeting of many
-//! vessels into one node. A contraction that would fold a loop of the graph onto itself
+//! (degree ≥ 3) shorter than `k` times the larger of their radii is contracted, its two
+//! junctions becoming one node at their mean position with the larger radius. Chains of
+//! such branches join a meeting of many vessels into one node. A contraction that would fold a loop of the graph onto itself
 //! (the two junctions joined by another branch of one or two edges, or a common
 //! neighbour) is not made, so components and loops are kept: the cycle rank is
 //! unchanged. Deterministic: branches are taken shortest first, ties by their ends' ids.
@@ -34,9 +34,9 @@ struct Short {
 }
 
 /// `skeleton` with every branch between two junctions shorter than `k` times their
-/// larger radius contracted (module doc; `k` of 0, or less, or NaN, joins none): kept nodes renumbered densely in their
-/// old order (a joined meeting keeps its smallest junction's id), kept edges in their
-/// old order, each with its smaller node first.
+/// larger radius contracted (module doc; `k` of 0, or less, or NaN, joins none): kept
+/// nodes renumbered densely in their old order (a joined meeting keeps its smallest
+/// junction's id), kept edges in their old order, each with its smaller node first.
 pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
     let Skeleton { mut positions, mut radii, edges, spacing, info } = skeleton;
     if k.is_nan() || k <= 0.0 {
@@ -79,13 +79,14 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
     let mut members: Vec<Vec<usize>> = (0..n).map(|i| vec![i]).collect();
     let mut removed_node = vec![false; n];
     let mut removed_edge = vec![false; edges.len()];
-    // The nodes next to a group (outside it), through the edges still kept.
-    let neighbours = |group: &[usize], removed_edge: &[bool], leader: &[usize]| -> Vec<usize> {
-        let mut out = vec![];
+    // The groups next to a group, through the edges still kept other than `skip` (a
+    // branch's own edges, a handful).
+    let neighbours = |group: &[usize], removed_edge: &[bool], leader: &[usize], skip: &[usize]| {
+        let mut out = BTreeSet::new();
         for &m in group {
             for &(w, e) in &adjacency[m] {
-                if !removed_edge[e] {
-                    out.push(find(leader, w));
+                if !removed_edge[e] && !skip.contains(&e) {
+                    out.insert(find(leader, w));
                 }
             }
         }
@@ -98,12 +99,8 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
         }
         // Safe when the branch is the groups' only link of one or two edges: no other
         // edge between them and no common neighbour (other than the branch's own node).
-        let mut removed = removed_edge.clone();
-        for &e in &s.edges {
-            removed[e] = true;
-        }
-        let near_a: BTreeSet<usize> = neighbours(&members[a], &removed, &leader).into_iter().collect();
-        let near_b: BTreeSet<usize> = neighbours(&members[b], &removed, &leader).into_iter().collect();
+        let near_a = neighbours(&members[a], &removed_edge, &leader, &s.edges);
+        let near_b = neighbours(&members[b], &removed_edge, &leader, &s.edges);
         if near_a.contains(&b) || near_a.intersection(&near_b).next().is_some() {
             continue;
         }
@@ -121,8 +118,8 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
     }
 
     // Each group at its members' mean position (in id order) with their largest radius.
-    for (k, group) in members.iter_mut().enumerate() {
-        if group.len() < 2 || removed_node[k] {
+    for (first, group) in members.iter_mut().enumerate() {
+        if group.len() < 2 || removed_node[first] {
             continue;
         }
         group.sort_unstable();
@@ -135,8 +132,8 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
             r = r.max(radii[m]);
         }
         let count = group.len() as f64;
-        positions[k] = sum.map(|x| x / count);
-        radii[k] = r;
+        positions[first] = sum.map(|x| x / count);
+        radii[first] = r;
     }
     let mut id = vec![usize::MAX; n];
     let mut next = 0;
