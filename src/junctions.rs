@@ -19,11 +19,12 @@
 //! an acute angle the split junctions lie farther apart; a branch up to [`CROSSING`]
 //! times that bound is contracted too when the joined node is a crossing: two pairs of
 //! its branches run straight through it ([`THROUGH`]). Two bifurcations close together
-//! on a parent vessel have one such pair, the parent, and stay two. A contraction that would fold a loop of the graph onto itself
-//! (the two junctions joined by another branch of one or two edges, or a common
-//! neighbour) is not made, so components and loops are kept: the cycle rank is
-//! unchanged. Deterministic: branches are taken shortest first, ties by their ends' ids.
+//! on a parent vessel have one such pair, the parent, and stay two. A contraction that
+//! would fold a loop of the graph onto itself (the two junctions joined by another
+//! branch of one or two edges, or a common neighbour) is not made, so components and
+//! loops are kept: the cycle rank is unchanged. Deterministic: branches are taken shortest first, ties by their ends' ids.
 
+use crate::decimate::mean_and_largest;
 use crate::graph::Skeleton;
 use crate::prune::{adjacency, trace};
 use crate::vec3::{dot, norm, sub, unit};
@@ -124,9 +125,11 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
         if near_a.contains(&b) || near_a.intersection(&near_b).next().is_some() {
             continue;
         }
-        let joined: Vec<usize> = members[a].iter().chain(&members[b]).copied().collect();
-        if s.crossing && through_pairs(&joined, &adjacency, &removed_edge, &s.edges, &positions, &radii) < 2 {
-            continue;
+        if s.crossing {
+            let joined: Vec<u32> = members[a].iter().chain(&members[b]).map(|&m| m as u32).collect();
+            if through_pairs(&joined, &adjacency, &removed_edge, &s.edges, &positions, &radii) < 2 {
+                continue;
+            }
         }
         for &e in &s.edges {
             removed_edge[e] = true;
@@ -141,23 +144,15 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
         members[keep].extend(moved);
     }
 
-    // Each group at its members' mean position (in id order) with their largest radius.
+    // Each group at its members' mean position (in id order) with their largest radius,
+    // as decimation merges a cluster (ids fit in the `u32` the core's graphs use).
     for (first, group) in members.iter_mut().enumerate() {
         if group.len() < 2 || removed_node[first] {
             continue;
         }
         group.sort_unstable();
-        let mut sum = [0.0; 3];
-        let mut r = f64::NEG_INFINITY;
-        for &m in group.iter() {
-            for d in 0..3 {
-                sum[d] += positions[m][d];
-            }
-            r = r.max(radii[m]);
-        }
-        let count = group.len() as f64;
-        positions[first] = sum.map(|x| x / count);
-        radii[first] = r;
+        let ids: Vec<u32> = group.iter().map(|&m| m as u32).collect();
+        (positions[first], radii[first]) = mean_and_largest(&ids, &positions, &radii);
     }
     let mut id = vec![usize::MAX; n];
     let mut next = 0;
@@ -191,20 +186,20 @@ pub fn merge_close_junctions(skeleton: Skeleton, k: f64) -> Skeleton {
 /// direction is from there to its first node two radii away (or its last node), pairs
 /// taken most nearly opposite first.
 fn through_pairs(
-    joined: &[usize],
+    joined: &[u32],
     adjacency: &[Vec<(usize, usize)>],
     removed_edge: &[bool],
     skip: &[usize],
     positions: &[[f64; 3]],
     radii: &[f64],
 ) -> usize {
-    let count = joined.len() as f64;
-    let centre: [f64; 3] = std::array::from_fn(|d| joined.iter().map(|&m| positions[m][d]).sum::<f64>() / count);
-    let reach = 2.0 * joined.iter().map(|&m| radii[m]).fold(0.0, f64::max);
+    let (centre, largest) = mean_and_largest(joined, positions, radii);
+    let reach = 2.0 * largest;
     let mut directions = vec![];
     for &m in joined {
+        let m = m as usize;
         for &(first, e) in &adjacency[m] {
-            if removed_edge[e] || skip.contains(&e) || joined.contains(&first) {
+            if removed_edge[e] || skip.contains(&e) || joined.contains(&(first as u32)) {
                 continue;
             }
             let (mut prev, mut cur) = (m, first);
