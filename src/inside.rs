@@ -14,6 +14,7 @@
 //! nodes were all inside are unchanged bit for bit.
 
 use crate::cycles::Cycle;
+use crate::vec3::base_cell;
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -136,24 +137,53 @@ impl HeldOnMask {
 }
 
 /// Every node of `held` that the contraction's solve took from its foreground voxel
-/// onto a background voxel or out of the array (its new position in `moved`) goes
-/// back where it was (not in the paper). The flow pulls a loop around a narrow hole
-/// of the mask across the hole and shut, and cuts the corner of a thin curved vessel
-/// through the background: both are moves off the mask. A node already off the mask
-/// moves freely, so that it can come back (README, "Where we differ", 18).
+/// onto a background voxel or out of the array, or across the background to another
+/// foreground voxel (its new position in `moved`), goes back where it was (not in the
+/// paper). The flow pulls a loop around a narrow hole of the mask across the hole and
+/// shut, and cuts the corner of a thin curved vessel through the background: both are
+/// moves off the mask. Where bubbles of noise have narrowed a loop's hole to a voxel
+/// or two, a ring node's step could clear it and land on the far rim: the straight
+/// path of every move is read at steps of at most [`PATH_STEP`] base cells, and a move
+/// that crosses a background voxel is undone like one that ends on it (README, "Where
+/// we differ", 18). A node already off the mask moves freely, so that it can come back.
 pub fn undo_moves_off_the_mask<T: Voxel>(
     moved: &mut [[f64; 3]],
     held: &HeldOnMask,
     mask: ArrayView3<'_, T>,
     spacing: [f64; 3],
 ) {
+    let step = PATH_STEP * base_cell(spacing);
     for (&k, &b) in held.nodes.iter().zip(&held.positions) {
         let q = &mut moved[k as usize];
-        if !on_mask(&mask, *q, spacing) {
+        if !path_on_mask(&mask, b, *q, step, spacing) {
             *q = b;
         }
     }
 }
+
+/// Largest step, in base cells, at which [`undo_moves_off_the_mask`] reads a move's
+/// path: half a cell, so that the path cannot step over a background voxel it crosses
+/// by more than a corner.
+pub const PATH_STEP: f64 = 0.5;
+
+/// Whether the straight path from `a` to `b` stays on the mask: `b` and the points
+/// between, at most `step` apart (`a` is not read: the caller knows it is on the mask).
+fn path_on_mask<T: Voxel>(mask: &ArrayView3<'_, T>, a: [f64; 3], b: [f64; 3], step: f64, spacing: [f64; 3]) -> bool {
+    let length = (0..3).map(|d| (b[d] - a[d]).powi(2)).sum::<f64>().sqrt();
+    // Capped: a move of more than a few thousand cells is off the mask anyway (`b` is read first).
+    let n = ((length / step).ceil() as usize).clamp(1, 1 << 16);
+    on_mask(mask, b, spacing)
+        && (1..n).all(|s| {
+            let t = s as f64 / n as f64;
+            on_mask(mask, std::array::from_fn(|d| a[d] + t * (b[d] - a[d])), spacing)
+        })
+}
+
+/// Smallest vessel radius, in base cells, that [`loop_of_the_mask`] measures a hole
+/// against. Chosen on the tuning forests at D2 between 0.75 and 1 (59 and 56 of their 66
+/// clean-mask loops kept), after a held-out capillary bed showed the need for a floor
+/// (one knot kept as a loop without it).
+pub const LOOP_FLOOR: f64 = 0.75;
 
 /// Base cells taken off the EDT radii the loop rule compares holes with (the
 /// half-voxel correction of `docs/method.md` §1, with which [`loop_of_the_mask`] was set; the output radii
@@ -163,9 +193,14 @@ pub const LOOP_RADIUS_SHIFT: f64 = 0.5;
 /// True if the cycle is a loop of the mask and not a knot of the flow: its centroid
 /// lies on a background voxel (or outside the array), so the polygon runs around a
 /// hole of the mask, and the hole is at least as wide as the vessels that form it.
-/// With `r` the mean vessel radius of the cycle's nodes (their EDT less `shift`), a
-/// loop around a hole of radius `h` has a centreline of radius `h + r`, so
-/// `h ≥ r` means an area of at least `π (2 r)²`. Smaller holes are what bubbles of
+/// With `r` the mean vessel radius of the cycle's nodes (their EDT less `shift`): the
+/// flow draws a loop's ring in from the vessels' centreline (radius `h + r` about a
+/// hole of radius `h`) until its nodes stand on the hole's rim, where
+/// [`undo_moves_off_the_mask`] holds them, so by refinement the polygon's radius is
+/// between `h` and `h + r`, and `h ≥ r` means an area of at least `π r²`; and of
+/// at least `π (LOOP_FLOOR c)²`, `c` the base cell: on a vessel a voxel thin `r` is
+/// about half a cell, and a knot of three or four nodes around a crease of the mask
+/// would pass (README, "Where we differ", 18). Smaller holes are what bubbles of
 /// segmentation noise make beside a vessel; refinement collapses those as before.
 pub fn loop_of_the_mask<T: Voxel>(
     cycle: &Cycle,
@@ -179,8 +214,9 @@ pub fn loop_of_the_mask<T: Voxel>(
     let centroid: [f64; 3] =
         std::array::from_fn(|d| cycle.nodes.iter().map(|&i| positions[i as usize][d]).sum::<f64>() / k);
     let r = cycle.nodes.iter().map(|&i| (radii[i as usize] - shift).max(0.0)).sum::<f64>() / k;
+    let r = r.max(LOOP_FLOOR * base_cell(spacing));
     let hole = !on_mask(&mask, centroid, spacing);
-    hole && cycle.area >= std::f64::consts::PI * (2.0 * r).powi(2)
+    hole && cycle.area >= std::f64::consts::PI * r * r
 }
 
 #[cfg(test)]
@@ -225,6 +261,52 @@ mod tests {
             undo_moves_off_the_mask(&mut moved, &held, line.view(), spacing);
             assert_eq!(moved, vec![to[0], before[1], to[2], before[3], to[4], to[5]], "spacing {spacing:?}");
         }
+    }
+
+    /// A held node's step across the background onto another vessel is undone like a
+    /// step onto the background (two lines two voxels apart, at any spacing): the step
+    /// along its own line and the node not held keep their new positions.
+    #[test]
+    fn held_moves_across_the_background_are_undone() {
+        let lines = Array3::from_shape_fn((3, 5, 6), |(i, j, _)| u8::from(i == 1 && (j == 1 || j == 3)));
+        for spacing in [[1.0; 3], [0.5, 2.0, 1.5]] {
+            let at = |v: [f64; 3]| -> [f64; 3] { std::array::from_fn(|d| v[d] * spacing[d]) };
+            let before: Vec<[f64; 3]> =
+                [[1.0, 1.0, 1.0], [1.0, 1.0, 2.0], [1.0, 3.0, 4.0], [1.0, 1.0, 3.0]].map(at).to_vec();
+            let to: Vec<[f64; 3]> =
+                [[1.0, 3.0, 1.0], [1.0, 1.0, 4.9], [1.0, 1.0, 4.0], [1.0, 3.0, 3.0]].map(at).to_vec();
+            let mut moved = to.clone();
+            let held = HeldOnMask::new(&before, &|k| k != 3, lines.view(), spacing);
+            undo_moves_off_the_mask(&mut moved, &held, lines.view(), spacing);
+            assert_eq!(moved, vec![before[0], to[1], before[2], to[3]], "spacing {spacing:?}");
+        }
+    }
+
+    /// A ring drawn in onto the rim of its hole is a loop when the hole is as wide as
+    /// its vessels: a band three voxels wide around a 3×3 hole, the polygon on the
+    /// rim's voxels (area 16, radii 2: r = 1.5), which `π (2 r)²` (the centreline's
+    /// bound) refused. A polygon around a one-voxel hole in a mask a voxel thin (radii 1:
+    /// r = 0.5, area 1.44) is not: the floor of `LOOP_FLOOR` base cells.
+    #[test]
+    fn a_ring_on_the_rim_of_a_hole_as_wide_as_its_vessels_is_a_loop() {
+        let nodes = [0u32, 1, 2, 3];
+        let cycle = |p: &[[f64; 3]]| Cycle { nodes: nodes.to_vec(), area: crate::cycles::vector_area(&nodes, p) };
+        let band = Array3::from_shape_fn((3, 11, 11), |(i, j, k)| {
+            u8::from(
+                i == 1
+                    && (1..=9).contains(&j)
+                    && (1..=9).contains(&k)
+                    && !((4..=6).contains(&j) && (4..=6).contains(&k)),
+            )
+        });
+        let rim = [[1.0, 3.0, 3.0], [1.0, 7.0, 3.0], [1.0, 7.0, 7.0], [1.0, 3.0, 7.0]];
+        assert!(loop_of_the_mask(&cycle(&rim), &rim, &[2.0; 4], 0.5, band.view(), [1.0; 3]));
+        assert!(!loop_of_the_mask(&cycle(&rim), &rim, &[3.0; 4], 0.5, band.view(), [1.0; 3]));
+        let mut pierced = Array3::<u8>::zeros((3, 9, 9));
+        pierced.slice_mut(ndarray::s![1, .., ..]).fill(1);
+        pierced[[1, 4, 4]] = 0;
+        let knot = [[1.0, 3.4, 3.4], [1.0, 4.6, 3.4], [1.0, 4.6, 4.6], [1.0, 3.4, 4.6]];
+        assert!(!loop_of_the_mask(&cycle(&knot), &knot, &[1.0; 4], 0.5, pierced.view(), [1.0; 3]));
     }
 
     /// A square loop of one-voxel lines around a 3×3 hole is a loop of the mask; a
