@@ -170,7 +170,8 @@ pub const PATH_STEP: f64 = 0.5;
 /// between, at most `step` apart (`a` is not read: the caller knows it is on the mask).
 fn path_on_mask<T: Voxel>(mask: &ArrayView3<'_, T>, a: [f64; 3], b: [f64; 3], step: f64, spacing: [f64; 3]) -> bool {
     let length = (0..3).map(|d| (b[d] - a[d]).powi(2)).sum::<f64>().sqrt();
-    // Capped: a move of more than a few thousand cells is off the mask anyway (`b` is read first).
+    // At most 2^16 points (32 768 cells at the finest step): a longer move is read more
+    // coarsely, and its end (read first) has decided most such moves already.
     let n = ((length / step).ceil() as usize).clamp(1, 1 << 16);
     on_mask(mask, b, spacing)
         && (1..n).all(|s| {
@@ -200,7 +201,7 @@ pub const LOOP_RADIUS_SHIFT: f64 = 0.5;
 /// between `h` and `h + r`, and `h ≥ r` means an area of at least `π r²`; and of
 /// at least `π (LOOP_FLOOR c)²`, `c` the base cell: on a vessel a voxel thin `r` is
 /// about half a cell, and a knot of three or four nodes around a crease of the mask
-/// would pass (README, "Where we differ", 18). Smaller holes are what bubbles of
+/// would pass (README, "Where we differ", 9). Smaller holes are what bubbles of
 /// segmentation noise make beside a vessel; refinement collapses those as before.
 pub fn loop_of_the_mask<T: Voxel>(
     cycle: &Cycle,
