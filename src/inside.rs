@@ -14,7 +14,7 @@
 //! nodes were all inside are unchanged bit for bit.
 
 use crate::cycles::Cycle;
-use crate::vec3::base_cell;
+use crate::vec3::{base_cell, norm, sub};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -169,14 +169,15 @@ pub const PATH_STEP: f64 = 0.5;
 /// Whether the straight path from `a` to `b` stays on the mask: `b` and the points
 /// between, at most `step` apart (`a` is not read: the caller knows it is on the mask).
 fn path_on_mask<T: Voxel>(mask: &ArrayView3<'_, T>, a: [f64; 3], b: [f64; 3], step: f64, spacing: [f64; 3]) -> bool {
-    let length = (0..3).map(|d| (b[d] - a[d]).powi(2)).sum::<f64>().sqrt();
+    let ab = sub(b, a);
+    let length = norm(ab);
     // At most 2^16 points (32 768 cells at the finest step): a longer move is read more
     // coarsely, and its end (read first) has decided most such moves already.
     let n = ((length / step).ceil() as usize).clamp(1, 1 << 16);
     on_mask(mask, b, spacing)
         && (1..n).all(|s| {
             let t = s as f64 / n as f64;
-            on_mask(mask, std::array::from_fn(|d| a[d] + t * (b[d] - a[d])), spacing)
+            on_mask(mask, std::array::from_fn(|d| a[d] + t * ab[d]), spacing)
         })
 }
 
