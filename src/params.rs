@@ -191,7 +191,7 @@ impl Default for Params {
             connectivity: Connectivity::Six,
             reconnect_thin: true,
             radius_correction: 0.0,
-            coarse_cell: 0.5,
+            coarse_cell: 0.67,
             medial_weight: MedialWeight::Radius,
             skeletal_angle: 10.0,
             anchor_ends: true,

@@ -156,7 +156,7 @@ class Skeletonizer:
         connectivity: Literal[6, 18, 26] = 6,
         reconnect_thin: bool = True,
         radius_correction: float = 0.0,
-        coarse_cell: float = 0.5,
+        coarse_cell: float = 0.67,
         medial_weight: Literal["radius", "difference"] = "radius",
         skeletal_angle: float = 10.0,
         anchor_ends: bool = True,

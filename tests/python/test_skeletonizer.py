@@ -20,7 +20,7 @@ def test_core_lists_every_method_parameter_with_its_default():
         "connectivity": 6,
         "reconnect_thin": True,
         "radius_correction": 0.0,
-        "coarse_cell": 0.5,
+        "coarse_cell": 0.67,
         "medial_weight": "radius",
         "skeletal_angle": 10.0,
         "anchor_ends": True,
