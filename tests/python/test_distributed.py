@@ -100,12 +100,12 @@ def _canonical(g: vesselflow.VesselGraph) -> tuple[np.ndarray, np.ndarray, np.nd
 
 @pytest.mark.parametrize("seed", [0, 1, 3])
 def test_one_block_gives_the_single_runs_graph(seed: int, client: Any) -> None:
-    # One block covering the volume: the merge alone differs from the single run. Beds
-    # 0 and 1 have two output nodes in one merge cell, which a merge keyed by cell alone
+    # One block covering the volume: the merge alone differs from the single run. A bed
+    # can have two output nodes in one merge cell, which a merge keyed by cell alone
     # fused (one node fewer, its edges moved); they stay two nodes. Beds 0 and 1 grow
     # sprouts, which the merge attaches where the single run grows them. Every bed has
-    # edges the coarse start split (7 to 16 new nodes), which the merge takes from the
-    # block, placed and measured on the mask, where it once split them on the chords.
+    # edges the coarse start split, which the merge takes from the block, placed and
+    # measured on the mask, where it once split them on the chords.
     from vesselflow.synth import vascular_bed
 
     mask = vascular_bed(48, seed)
