@@ -252,7 +252,9 @@ def skeletonize(
     spacing
         Voxel spacing (3 numbers, or one); by default the OME metadata's, else 1.
     chunks
-        Core block shape in voxels (one number for all axes).
+        Core block shape in voxels (one number for all axes). Wider blocks give a graph
+        closer to the single run's in less time (fewer seams, less halo per voxel), for
+        more memory per worker (README, "Whole organs on Dask").
     client
         A ``dask.distributed.Client``; ``None`` runs on a local cluster of one
         single-threaded worker process per core.
@@ -264,7 +266,9 @@ def skeletonize(
         Called as ``progress(done, total)`` after every block.
     halo
         Halo width in base cells (the smallest spacing); by default the larger of
-        :data:`REACH` and three times the largest vessel radius.
+        :data:`REACH` and three times the largest vessel radius. A wider one costs time
+        and does not bring the graph closer to the single run's: each block still runs its
+        own flow (its own stop and solve).
     key, threshold, label
         As for :func:`vesselflow.load_volume`: the dataset and the input rule.
     **params
