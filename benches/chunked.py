@@ -165,8 +165,9 @@ def _compare(one: Any, g: Any) -> dict[str, Any]:
 #: Halos of the sweep on the first volume, beside its automatic halo (the report's
 #: main row); 127 is a block of 128 that reads all but one slab of a 256 volume.
 SWEEP_HALOS = (32, 64, 100, 127)
-#: Both runs held to one schedule: the contraction stopped by its cap before any run
-#: stalls (the 256³ bed's single run stalls after 12 iterations), every solve tight.
+#: Both runs held to one schedule: the contraction capped below the iterations any run
+#: takes when free (the 256³ bed's single run stalls after 12; blocks of 128³ stopped
+#: after 13-15 in README's earlier sweep), every solve tight.
 SCHEDULE = {"max_iterations": 9, "cg_tol": 1e-10}
 #: Width (voxels) of the band about the seams in which the differences are counted apart.
 SEAM_BAND = 10.0
@@ -306,8 +307,8 @@ def _gap_report(rows: list[dict[str, Any]], args: Any) -> list[str]:
         f"farther than 1 voxel from the chunked graph, beyond that band "
         f"{100 * s['far_beyond']:.1f} %. The same chunked run with other halos (NetMets at "
         "sigma = 1 against the single run, as above), and with both runs held to one "
-        "contraction schedule (stopped by the iteration cap before any stall, every solve "
-        f"tight; the single run then stopped after {gap['iterations']} iterations):",
+        "contraction schedule (an iteration cap below what any run takes when free, every "
+        f"solve tight; the single run then stopped after {gap['iterations']} iterations):",
         "",
         "| chunked run | GFNR | GFPR | CFNR | CFPR | wall |",
         "|---|---|---|---|---|---|",
