@@ -68,9 +68,11 @@ def _filled(ring: np.ndarray, mask: np.ndarray) -> bool:
     return True
 
 
-def filled_cycle_nodes(truth: VesselGraph, mask: np.ndarray) -> tuple[set[int], int, int]:
-    """The truth's nodes on filled basis cycles, the number of filled cycles and of all."""
-    branches = trace_branches(truth)
+def filled_cycle_nodes(
+    truth: VesselGraph, branches: list[Any], mask: np.ndarray
+) -> tuple[set[int], int, int]:
+    """The truth's nodes on filled basis cycles, the number of filled cycles and of all;
+    ``branches`` are the truth's (:func:`vesselflow.analysis.trace_branches`)."""
     core = nx.Graph()
     for k, br in enumerate(branches):
         p = truth.positions[list(br.nodes)]
@@ -94,10 +96,13 @@ def filled_cycle_nodes(truth: VesselGraph, mask: np.ndarray) -> tuple[set[int], 
     return nodes, filled, len(cycles)
 
 
-def branch_counts(truth: VesselGraph, graph: VesselGraph, near: np.ndarray) -> Counter[str]:
-    """Branches of both networks: all and not found, near filled loops and elsewhere."""
+def branch_counts(
+    truth: VesselGraph, branches: list[Any], graph: VesselGraph, near: np.ndarray
+) -> Counter[str]:
+    """Branches of both networks: all and not found, near filled loops and elsewhere;
+    ``branches`` are the truth's, traced once per case."""
     kd = cKDTree(near) if len(near) else None
-    sides = {"truth": trace_branches(truth), "graph": trace_branches(graph)}
+    sides = {"truth": branches, "graph": trace_branches(graph)}
     ends = {s: [(b.nodes[0], b.nodes[-1]) for b in brs] for s, brs in sides.items()}
     core = {s: sorted({n for e in ends[s] for n in e}) for s in sides}
     lt, lg = _match_core_nodes(
@@ -148,7 +153,8 @@ def main() -> None:
             seed = F.SEED_SETS[args.set] + k
             recipe = F.Recipe("forest", f"forest{seed:04d}", level, seed, args.set, k)
             case = F.build_synthetic(recipe)
-            nodes, filled, total = filled_cycle_nodes(case.truth, case.mask)
+            branches = trace_branches(case.truth)
+            nodes, filled, total = filled_cycle_nodes(case.truth, branches, case.mask)
             cycles[level][0] += filled
             cycles[level][1] += total
             near = case.truth.positions[sorted(nodes)]
@@ -156,7 +162,7 @@ def main() -> None:
                 options: dict[str, Any] = {"threads": 1} if method == "vesselflow" else {}
                 graph = compare.run(method, case.mask, case.spacing, **options)
                 totals.setdefault((level, method), Counter()).update(
-                    branch_counts(case.truth, graph, near)
+                    branch_counts(case.truth, branches, graph, near)
                 )
             print(level, recipe.name, "done", time.strftime("%H:%M:%S"), flush=True)
     Path(args.out).write_text(report(totals, cycles, args, count))
