@@ -35,18 +35,22 @@
 //! record's position plus the mean offset of the others (a node of one record keeps its
 //! position exactly); it takes the largest radius. Record pairs become edges, and
 //! corner-only contacts bridge what the edges leave apart, as [`crate::grid::build`]
-//! does, so every mask component is one graph component. Finally refinement
-//! ([`crate::cycles::refine_step`]) collapses the short cycles that seams made: only
-//! cycles through a seam node are considered (every other cycle is a cycle of one
-//! block's graph, nodes and edges unchanged, already judged by its block, which had the
-//! mask).
+//! does, so every mask component is one graph component. Finally the short cycles that
+//! seams made are closed ([`crate::cycles::Move::ShortestEdge`]): only cycles
+//! through a seam node are considered (every other cycle is a cycle of one block's
+//! graph, nodes and edges unchanged, already judged by its block, which had the mask),
+//! and each loses its shortest edge, round by round. Such a cycle is mostly two copies
+//! of one vessel, one from each block, joined at a junction and again further along;
+//! the copies close where they lie closest and the junction stays. (The single run's
+//! refinement, every node halfway to its cycle's centroid, moved such a junction to
+//! the middle of the copies, several voxels along the vessel.)
 //!
 //! **Routing phase** ([`crate::blocks_route`]): after the merge, the merged edges that
 //! cross background are routed inside the mask, each by the one block that owns it.
 
 use crate::blocks_sprouts::{attach_sprouts, SproutRecord};
 use crate::cancel::Stop;
-use crate::cycles::{refine_step, Cycle};
+use crate::cycles::{refine_step, Cycle, Move};
 use crate::decimate::{cell_of, decimate_mapped, NodeGraph};
 use crate::error::{Error, Result};
 use crate::fate::in_core;
@@ -492,15 +496,17 @@ impl Skeletonizer {
         let graph = Csr::from_sorted_edges(nodes, &edges.iter().map(|&[a, b]| (a, b)).collect::<Vec<_>>());
         let mut g = NodeGraph { graph, positions, radii, component };
 
-        // Refinement of the short cycles the merge made: a cycle through a seam node is
-        // collapsed below `refine_area`; any other cycle is one block's, judged there.
+        // The short cycles the merge made: a cycle through a seam node below
+        // `refine_area` loses its shortest edge per round; any other cycle is one
+        // block's, judged there.
         let max_area = p.refine_area * c * c;
         // Where each merged node went, and which nodes the refinement made by fusing.
         let mut now: Vec<u32> = (0..nodes as u32).collect();
         let mut fused = vec![false; nodes];
         for _ in 0..p.max_refine_iterations {
             let kept = |cycle: &Cycle| !cycle.nodes.iter().any(|&i| seam[i as usize]);
-            let Some((positions, moved, _)) = refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &kept)
+            let Some((positions, moved, _)) =
+                refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &kept, Move::ShortestEdge)
             else {
                 break;
             };

@@ -247,17 +247,30 @@ pub fn short_cycle_area(g: &Csr, positions: &[[f64; 3]], max_nodes: usize) -> f6
     parts.iter().sum()
 }
 
-/// One refinement move (eq. 11): every node of a kept cycle (area below
-/// `max_area`, and not a `loop_of_the_mask`) steps halfway to the centroid of one
-/// kept cycle through it — the one with the fewest nodes, then the smallest area,
-/// then the first closing edge. Returns the new positions and which nodes moved, or
-/// `None` if no cycle is kept.
+/// How a refinement move closes a kept cycle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Move {
+    /// Every node of a kept cycle steps halfway to the centroid of one kept cycle
+    /// through it — the one with the fewest nodes, then the smallest area, then the
+    /// first closing edge (eq. 11; the single run's refinement).
+    Centroid,
+    /// Every kept cycle's shortest edge is contracted, both ends moved to the edge's
+    /// midpoint (edges taken shortest first, each node in at most one; a chunked run's
+    /// merge). A thin cycle of two copies of one vessel closes where the copies lie
+    /// closest, and its far end (a junction) stays where it is.
+    ShortestEdge,
+}
+
+/// One refinement move on the kept cycles (area below `max_area`, and not a
+/// `loop_of_the_mask`), closed as `how` says. Returns the new positions and which
+/// nodes moved, or `None` if no cycle is kept.
 pub fn refine_step(
     g: &Csr,
     positions: &[[f64; 3]],
     max_nodes: usize,
     max_area: f64,
     loop_of_the_mask: &(dyn Fn(&Cycle) -> bool + Sync),
+    how: Move,
 ) -> Option<(Vec<[f64; 3]>, Vec<bool>, usize)> {
     let kept: Vec<Cycle> = short_cycles(g, positions, max_nodes)
         .into_iter()
@@ -266,7 +279,16 @@ pub fn refine_step(
     if kept.is_empty() {
         return None;
     }
-    let mut choice: Vec<Option<usize>> = vec![None; g.nodes()];
+    let (new, moved) = match how {
+        Move::Centroid => centroid_move(&kept, positions),
+        Move::ShortestEdge => shortest_edge_move(&kept, positions),
+    };
+    Some((new, moved, kept.len()))
+}
+
+/// [`Move::Centroid`] of the `kept` cycles: new positions, and which nodes moved.
+fn centroid_move(kept: &[Cycle], positions: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<bool>) {
+    let mut choice: Vec<Option<usize>> = vec![None; positions.len()];
     let rank = |k: usize| (kept[k].nodes.len(), kept[k].area, k);
     for (k, c) in kept.iter().enumerate() {
         for &i in &c.nodes {
@@ -297,7 +319,42 @@ pub fn refine_step(
             None => *p,
         })
         .collect();
-    Some((new, moved, kept.len()))
+    (new, moved)
+}
+
+/// [`Move::ShortestEdge`] of the `kept` cycles: new positions, and which nodes moved.
+fn shortest_edge_move(kept: &[Cycle], positions: &[[f64; 3]]) -> (Vec<[f64; 3]>, Vec<bool>) {
+    let length = |a: u32, b: u32| {
+        let (p, q) = (positions[a as usize], positions[b as usize]);
+        ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
+    };
+    let mut shortest: Vec<(f64, u32, u32)> = kept
+        .iter()
+        .filter_map(|c| {
+            let n = c.nodes.len();
+            (0..n)
+                .map(|k| {
+                    let (a, b) = (c.nodes[k], c.nodes[(k + 1) % n]);
+                    (length(a, b), a.min(b), a.max(b))
+                })
+                .min_by(|x, y| x.0.total_cmp(&y.0).then((x.1, x.2).cmp(&(y.1, y.2))))
+        })
+        .collect();
+    shortest.sort_by(|x, y| x.0.total_cmp(&y.0).then((x.1, x.2).cmp(&(y.1, y.2))));
+    let mut new = positions.to_vec();
+    let mut moved = vec![false; positions.len()];
+    for (_, a, b) in shortest {
+        let (a, b) = (a as usize, b as usize);
+        if moved[a] || moved[b] {
+            continue;
+        }
+        let mid: [f64; 3] = std::array::from_fn(|d| 0.5 * (positions[a][d] + positions[b][d]));
+        new[a] = mid;
+        new[b] = mid;
+        moved[a] = true;
+        moved[b] = true;
+    }
+    (new, moved)
 }
 
 #[cfg(test)]
@@ -315,6 +372,34 @@ mod tests {
             })
             .collect();
         (Csr::from_sorted_edges(n as usize, &e), p)
+    }
+
+    #[test]
+    fn a_thin_cycle_closes_at_its_shortest_edge_and_its_far_end_stays() {
+        // Two copies of one vessel from a junction J (node 0) that meet 10 cells further
+        // along: a triangle J, X, Y with X and Y 0.8 apart.
+        let g = Csr::from_sorted_edges(3, &[(0, 1), (0, 2), (1, 2)]);
+        let p = vec![[0.0, 10.0, 0.0], [0.4, 0.0, 0.0], [-0.4, 0.0, 0.0]];
+        let none = |_: &Cycle| false;
+        let (q, moved, kept) = refine_step(&g, &p, 10, 10.0, &none, Move::ShortestEdge).unwrap();
+        assert_eq!(kept, 1);
+        assert_eq!(moved, vec![false, true, true]);
+        assert_eq!(q, vec![p[0], [0.0; 3], [0.0; 3]]);
+        // The centroid move takes J a third of the way down the copies.
+        let (r, _, _) = refine_step(&g, &p, 10, 10.0, &none, Move::Centroid).unwrap();
+        assert!((r[0][1] - 20.0 / 3.0).abs() < 1e-12);
+        // A cycle at or above the area bound, or a loop of the mask, is left alone.
+        assert!(refine_step(&g, &p, 10, 4.0, &none, Move::ShortestEdge).is_none());
+        assert!(refine_step(&g, &p, 10, 10.0, &|_: &Cycle| true, Move::ShortestEdge).is_none());
+        // Two cycles sharing their shortest edge's end: the shorter edge goes first,
+        // and the node moves once.
+        let g = Csr::from_sorted_edges(5, &[(0, 1), (0, 2), (1, 2), (2, 3), (2, 4), (3, 4)]);
+        let p = vec![[0.0, 10.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, -0.3, 0.0], [5.0, -5.0, 0.0]];
+        let (q, moved, kept) = refine_step(&g, &p, 10, 100.0, &none, Move::ShortestEdge).unwrap();
+        assert_eq!(kept, 2);
+        assert_eq!(moved, vec![false, false, true, true, false]);
+        assert_eq!(q[2], [0.0, -0.15, 0.0]);
+        assert_eq!(q[1], p[1]);
     }
 
     #[test]
@@ -392,12 +477,12 @@ mod tests {
         // Triangle 0-1-2 plus a tail 2-3.
         let g = Csr::from_sorted_edges(4, &[(0, 1), (0, 2), (1, 2), (2, 3)]);
         let p = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 5.0, 0.0]];
-        let (q, moved, kept) = refine_step(&g, &p, 10, 50.0, &|_| false).unwrap();
+        let (q, moved, kept) = refine_step(&g, &p, 10, 50.0, &|_| false, Move::Centroid).unwrap();
         assert_eq!(kept, 1);
         assert_eq!(moved, vec![true, true, true, false]);
         let third = 1.0 / 3.0;
         assert!((q[1][0] - 0.5 * (1.0 + third)).abs() < 1e-12);
         assert_eq!(q[3], p[3]);
-        assert!(refine_step(&g, &p, 10, 0.1, &|_| false).is_none());
+        assert!(refine_step(&g, &p, 10, 0.1, &|_| false, Move::Centroid).is_none());
     }
 }

@@ -3,7 +3,7 @@
 
 use crate::cancel::{self, Stop};
 use crate::coarse;
-use crate::cycles::{refine_step, short_cycle_area, Cycle};
+use crate::cycles::{refine_step, short_cycle_area, Cycle, Move};
 use crate::decimate::{decimate_mapped, NodeGraph, CELL_LIMIT};
 use crate::edges_inside::{route_with_radii, Routed};
 use crate::ends::{extend_ends, follow_ends};
@@ -399,7 +399,7 @@ impl Skeletonizer {
         while info.refine_iterations < p.max_refine_iterations {
             let step = clock.time("refine", || {
                 let hole = |c: &Cycle| loop_of_the_mask(c, &g.positions, &g.radii, shift, mask, spacing);
-                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole))
+                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole, Move::Centroid))
             });
             stop.check()?;
             let Some((positions, moved, _)) = step else {
@@ -419,8 +419,9 @@ impl Skeletonizer {
         }
         if !info.refine_converged {
             let hole = |c: &Cycle| loop_of_the_mask(c, &g.positions, &g.radii, shift, mask, spacing);
-            info.refine_converged =
-                pool.install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole)).is_none();
+            info.refine_converged = pool
+                .install(|| refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &hole, Move::Centroid))
+                .is_none();
             stop.check()?;
         }
 
