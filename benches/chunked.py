@@ -9,8 +9,9 @@ For each: the single run in a fresh subprocess (wall time, peak RSS) and the chu
 of ``--workers`` single-threaded worker processes (wall time, every worker's peak RSS);
 then components and cycle rank of both graphs, NetMets at sigma = 1 voxel between them,
 the radii of matched nodes (each chunked node and the nearest single-run node within
-1 voxel), the same against the single run with its solver's tolerance halved and doubled
-and on the mask with its axes reordered (the method's own spread), the chunked run's
+1 voxel), the same against the single run with its solver's tolerance halved and doubled,
+on the mask with its axes reordered and on the mask one voxel further into a larger array
+(the method's own spread), the chunked run's
 time per phase, determinism (the run again on 1 worker: identical arrays), a worker
 killed mid-run (same graph), and a resume after deleting parts from the workdir (blocks
 recomputed). On the first volume, what the chunked run's distance from the single run is

@@ -504,9 +504,10 @@ impl Skeletonizer {
         let mut now: Vec<u32> = (0..nodes as u32).collect();
         let mut fused = vec![false; nodes];
         for _ in 0..p.max_refine_iterations {
-            let kept = |cycle: &Cycle| !cycle.nodes.iter().any(|&i| seam[i as usize]);
+            // Left alone: a cycle of one block (no seam node), judged by that block.
+            let one_blocks = |cycle: &Cycle| !cycle.nodes.iter().any(|&i| seam[i as usize]);
             let Some((positions, moved, _)) =
-                refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &kept, Move::ShortestEdge)
+                refine_step(&g.graph, &g.positions, p.max_cycle_nodes, max_area, &one_blocks, Move::ShortestEdge)
             else {
                 break;
             };
