@@ -178,7 +178,7 @@ def _compare(one: Any, g: Any) -> dict[str, Any]:
 SWEEP_HALOS = (32, 64, 100, 127)
 #: Both runs held to one schedule: the contraction capped below the iterations any run
 #: takes when free (the 256³ bed's single run stalls after 12; blocks of 128³ stopped
-#: after 13-15 in README's earlier sweep), every solve tight.
+#: after 13-15 in an earlier sweep: chunked.md, "History of the README's ..."), every solve tight.
 SCHEDULE = {"max_iterations": 9, "cg_tol": 1e-10}
 #: Width (voxels) of the band about the seams in which the differences are counted apart.
 SEAM_BAND = 10.0

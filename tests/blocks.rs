@@ -272,3 +272,28 @@ fn distinct_nodes_of_a_block_in_one_cell_stay_apart() {
     assert_eq!(z(&g), [1.3125, 3.0]);
     assert_eq!(g.edges, [[0, 1]]);
 }
+
+/// A node seen by two blocks (one record each in its cell) takes their radii's mean,
+/// weighted by the core voxels each record holds: the merge cannot measure the radius
+/// again, and the larger of two readings of one vessel reads it wide.
+#[test]
+fn a_node_seen_by_two_blocks_takes_their_radii_mean() {
+    use vesselflow::blocks::NodeRecord;
+    let rec = |z: f64, count: u64, radius: f64| NodeRecord {
+        component: 0,
+        cell: [0, 0, z.round() as i64],
+        node: 0,
+        position: [0.0, 0.0, z],
+        count,
+        radius,
+        split_radius: 0.0,
+    };
+    let sk = Skeletonizer::new(Params::default()).unwrap();
+    // Cores z < 2 and z >= 2 of a 1 x 1 x 4 volume; the node of cell 2 holds three core
+    // voxels of the first block (radius 2) and one of the second (radius 4).
+    let a = BlockPart { cells: vec![rec(1.75, 3, 2.0)], faces: vec![(1, 0)], ..Default::default() };
+    let b = BlockPart { cells: vec![rec(2.25, 1, 4.0)], faces: vec![(2, 0)], ..Default::default() };
+    let g = sk.merge_blocks(&[a, b], [1, 1, 4], [1.0; 3]).unwrap();
+    assert_eq!(g.positions, [[0.0, 0.0, 1.875]]);
+    assert_eq!(g.radii, [2.5]);
+}
