@@ -60,7 +60,7 @@ use crate::grid::Csr;
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
 use crate::resample::{split_long_edges, Chain};
-use crate::vec3::base_cell;
+use crate::vec3::{base_cell, dot, norm, sub};
 use crate::volume::{edt_squared, Voxel};
 use ndarray::ArrayView3;
 use petgraph::unionfind::UnionFind;
@@ -574,17 +574,44 @@ impl Skeletonizer {
             seam.resize(g.positions.len(), false);
         }
 
-        // One-node spurs that seams made: a seam leaf on a junction, within the
-        // junction's radius (a vessel end there would reach further).
+        // One-node spurs that seams made, among the seam leaves within their node's radius
+        // (a vessel end there would reach further). A leaf that points back along its
+        // node's vessel (towards another neighbour that is no leaf) folds into it: it goes.
+        // Leaves on a junction that point outwards go nearest first, while the junction
+        // keeps two neighbours: where two blocks each saw a vessel's end in a cell of their
+        // own, the end's two copies are leaves of its last node, and the farther stays
+        // (dropping both cut the vessel short).
         let degree: Vec<usize> = (0..g.positions.len()).map(|i| g.graph.neighbours(i).len()).collect();
-        let spur: Vec<bool> = (0..g.positions.len())
-            .map(|i| {
-                let [j] = g.graph.neighbours(i) else { return false };
-                let (a, b) = (g.positions[i], g.positions[*j as usize]);
-                let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
-                seam[i] && degree[*j as usize] >= 3 && d <= g.radii[*j as usize]
-            })
-            .collect();
+        let mut spur = vec![false; g.positions.len()];
+        let mut folds = vec![0usize; g.positions.len()];
+        let mut leaves: Vec<(u32, f64, usize)> = vec![];
+        for i in 0..g.positions.len() {
+            let [j] = *g.graph.neighbours(i) else { continue };
+            let out = sub(g.positions[i], g.positions[j as usize]);
+            let d = norm(out);
+            if !seam[i] || d > g.radii[j as usize] {
+                continue;
+            }
+            let back = |&k: &u32| {
+                k as usize != i
+                    && degree[k as usize] >= 2
+                    && dot(out, sub(g.positions[k as usize], g.positions[j as usize])) > 0.0
+            };
+            if g.graph.neighbours(j as usize).iter().any(back) {
+                spur[i] = true;
+                folds[j as usize] += 1;
+            } else if degree[j as usize] >= 3 {
+                leaves.push((j, d, i));
+            }
+        }
+        leaves.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(a.2.cmp(&b.2)));
+        for on_one in leaves.chunk_by(|a, b| a.0 == b.0) {
+            let j = on_one[0].0 as usize;
+            let drop = on_one.len().min((degree[j] - folds[j]).saturating_sub(2));
+            for &(_, _, i) in &on_one[..drop] {
+                spur[i] = true;
+            }
+        }
         let mut new_id = vec![u32::MAX; spur.len()];
         let mut kept = 0u32;
         for (i, &s) in spur.iter().enumerate() {

@@ -297,3 +297,50 @@ fn a_node_seen_by_two_blocks_takes_their_radii_mean() {
     assert_eq!(g.positions, [[0.0, 0.0, 1.875]]);
     assert_eq!(g.radii, [2.5]);
 }
+
+/// The one-node spurs that seams make go, but not a vessel's end. A 1 x 2 x 12 volume in
+/// two blocks (cores z < 6 and z >= 6); both blocks report the leaves, so the leaves are
+/// seam nodes. (a) A vessel's last node J with its end seen by the two blocks in two cells
+/// of their own (two leaves, both within J's radius): the nearer copy goes, the farther
+/// stays the end (both went before, cutting the vessel short by a node). (b) A leaf on J,
+/// within J's radius, that points back towards J's other neighbour K (it folds into the
+/// vessel): it goes, and J is the end.
+#[test]
+fn seam_spurs_go_but_a_vessel_keeps_its_end() {
+    use vesselflow::blocks::NodeRecord;
+    let rec = |node: u32, p: [f64; 3], radius: f64| NodeRecord {
+        component: 0,
+        cell: p.map(|x| x.round() as i64),
+        node,
+        position: p,
+        count: 1,
+        radius,
+        split_radius: 0.0,
+    };
+    let sk = Skeletonizer::new(Params { coarse_cell: 0.0, ..Params::default() }).unwrap();
+    let volume = [1, 2, 12];
+    // (a) N - J, J - E1, J - E2; E1 is 3.0 from J, E2 3.16.
+    let (n, j, e1, e2) = ([0.0, 0.0, 3.0], [0.0, 0.0, 6.0], [0.0, 0.0, 9.0], [0.0, 1.0, 9.0]);
+    let a = BlockPart {
+        cells: vec![rec(0, n, 2.0), rec(1, j, 4.0), rec(2, e1, 1.0), rec(3, e2, 1.0)],
+        edges: vec![[0, 1], [1, 2], [1, 3]],
+        faces: vec![(5, 1)],
+        ..Default::default()
+    };
+    let b = BlockPart { cells: vec![rec(0, e1, 1.0), rec(1, e2, 1.0)], faces: vec![(6, 0)], ..Default::default() };
+    let g = sk.merge_blocks(&[a, b], volume, [1.0; 3]).unwrap();
+    assert_eq!(g.positions, [n, j, e2]);
+    assert_eq!(g.edges, [[0, 1], [1, 2]]);
+    // (b) P - K - J - L, L 2.24 from J (radius 3), towards K.
+    let (p, k, l) = ([0.0, 0.0, 0.0], [0.0, 0.0, 3.0], [0.0, 1.0, 4.0]);
+    let a = BlockPart {
+        cells: vec![rec(0, p, 2.0), rec(1, k, 2.0), rec(2, j, 3.0), rec(3, l, 1.0)],
+        edges: vec![[0, 1], [1, 2], [2, 3]],
+        faces: vec![(5, 2)],
+        ..Default::default()
+    };
+    let b = BlockPart { cells: vec![rec(0, l, 1.0)], faces: vec![(6, 0)], ..Default::default() };
+    let g = sk.merge_blocks(&[a, b], volume, [1.0; 3]).unwrap();
+    assert_eq!(g.positions, [p, k, j]);
+    assert_eq!(g.edges, [[0, 1], [1, 2]]);
+}

@@ -16,6 +16,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,14 @@ blocks of 32 at faces, edges and corners), NetMets at sigma = 1 against the sing
 halo 4 leaves a spur on the tube (CFPR 0.86), halos 4 and 8 split the torus's loop at a
 seam (CFNR = CFPR = 1), halo 16 gives all four rates <= 0.003. The default halo is the
 larger of this and three times the largest vessel radius found by the per-chunk pass."""
+
+BLOCK_RADII = 6
+"""Fewest radii of the thickest vessel a block should span along every axis it cuts; under
+it the run warns. Measured on straight tubes whose ends lie within 4 voxels of a seam, 16
+per set-up (``benches/results/chunked.md``, "Vessel ends near seams"): in blocks of 3.6
+and 5.3 radii, 4 and 6 of 16 tubes had an end more than 2 voxels off (up to 6.9; the
+single run: none); in blocks of 6.4, 7.1 and 12.8 radii, about as many as the single
+run's (one tube at 7.1 radii 12.9 voxels off)."""
 
 Block = tuple[int, int, int]
 Slices = tuple[slice, slice, slice]
@@ -254,7 +263,9 @@ def skeletonize(
     chunks
         Core block shape in voxels (one number for all axes). Wider blocks give a graph
         closer to the single run's in less time (fewer seams, less halo per voxel), for
-        more memory per worker (README, "Whole organs on Dask").
+        more memory per worker (README, "Whole organs on Dask"). A block should span at
+        least :data:`BLOCK_RADII` radii of the thickest vessel along every axis it cuts:
+        the run warns when it does not.
     client
         A ``dask.distributed.Client``; ``None`` runs on a local cluster of one
         single-threaded worker process per core.
@@ -331,6 +342,17 @@ def skeletonize(
         c = min(spacing3)
         r_max = max((r for r in radii if r >= 0), default=0.0)
         cells = halo if halo is not None else max(REACH, math.ceil(3 * r_max / c))
+        cut = [size[d] * spacing3[d] for d in range(3) if src.shape[d] > size[d]]
+        if cut and min(cut) < BLOCK_RADII * r_max:
+            wide = [math.ceil(BLOCK_RADII * r_max / s) for s in spacing3]
+            warnings.warn(
+                f"blocks of {list(size)} voxels span {min(cut) / r_max:.1f} radii of the "
+                f"thickest vessel (radius {r_max:.3g}), under {BLOCK_RADII}: vessel ends near "
+                f"seams can come out several voxels off; chunks of at least {wide} voxels "
+                "avoid it",
+                UserWarning,
+                stacklevel=2,
+            )
         widths = [math.ceil(cells * c / s) for s in spacing3]
         parts_dir = None
         if workdir is not None:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -163,7 +164,8 @@ def test_empty_blocks_are_skipped_and_a_full_block_is_run(client: Any) -> None:
     shape = (64, 64, 48)
     mask = _ball_line(shape, (24, 24, 0), (24, 24, 47), 12)  # a thick vessel along axis 2
     assert mask[16:32, 16:32, :].all()  # blocks of 16 that are all foreground
-    g = _run(mask, client, chunks=16)
+    with pytest.warns(UserWarning, match="radii of the thickest vessel"):
+        g = _run(mask, client, chunks=16)
     occupied = sum(
         bool(mask[i : i + 16, j : j + 16, k : k + 16].any())
         for i in range(0, 64, 16)
@@ -181,6 +183,21 @@ def test_empty_blocks_are_skipped_and_a_full_block_is_run(client: Any) -> None:
     # The centreline runs along the axis of the vessel.
     assert np.abs(g.positions[:, :2] - 24).max() < 1.5
     assert _run(np.zeros((40, 40, 40), bool), client).n_nodes == 0
+
+
+def test_blocks_under_six_radii_of_the_thickest_vessel_warn(client: Any) -> None:
+    # The diagonal tube of radius 3 (the per-chunk pass reads sqrt(11)): blocks of 32 span
+    # 9.6 of its radii, blocks of 16 only 4.8, and blocks of 16 along axis 0 alone still
+    # cut it there; an axis the volume does not exceed is not cut.
+    mask = _tube((64, 64, 64), 3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _run(mask, client, chunks=32)
+        _run(mask[:, :16, :16], client, chunks=(32, 16, 16))
+    with pytest.warns(UserWarning, match=r"span 4\.8 radii .* chunks of at least \[20, 20, 20\]"):
+        _run(mask, client, chunks=16)
+    with pytest.warns(UserWarning, match="radii of the thickest vessel"):
+        _run(mask, client, chunks=(16, 64, 64))
 
 
 def test_anisotropic_spacing(client: Any) -> None:
