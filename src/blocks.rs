@@ -44,7 +44,9 @@
 //! of one vessel, one from each block, joined at a junction and again further along;
 //! the copies close where they lie closest and the junction stays. (The single run's
 //! refinement, every node halfway to its cycle's centroid, moved such a junction to
-//! the middle of the copies, several voxels along the vessel.)
+//! the middle of the copies, several voxels along the vessel.) A vessel's end that the
+//! closing fused goes back to its outermost member, and the one-node spurs seams left
+//! go (a junction keeps two neighbours).
 //!
 //! **Routing phase** ([`crate::blocks_route`]): after the merge, the merged edges that
 //! cross background are routed inside the mask, each by the one block that owns it.
@@ -509,6 +511,7 @@ impl Skeletonizer {
         // Where each merged node went, and which nodes the refinement made by fusing.
         let mut now: Vec<u32> = (0..nodes as u32).collect();
         let mut fused = vec![false; nodes];
+        let merged = g.positions.clone();
         for _ in 0..p.max_refine_iterations {
             // Left alone: a cycle of one block (no seam node), judged by that block.
             let one_blocks = |cycle: &Cycle| !cycle.nodes.iter().any(|&i| seam[i as usize]);
@@ -546,6 +549,26 @@ impl Skeletonizer {
             split_radii = next_split;
             fused = next_fused;
             g = next;
+        }
+        // A vessel's end that the closing fused with its neighbour sits at its outermost
+        // member: the member farthest from the end's one neighbour (the midpoint of the
+        // fused edge pulled the end in, and the merge has no mask to move it out again).
+        let mut outermost: Vec<Option<(f64, usize)>> = vec![None; g.positions.len()];
+        for (i, &m) in now.iter().enumerate() {
+            let m = m as usize;
+            let [q] = *g.graph.neighbours(m) else { continue };
+            if !fused[m] {
+                continue;
+            }
+            let d = norm(sub(merged[i], g.positions[q as usize]));
+            if outermost[m].is_none_or(|(best, _)| d > best) {
+                outermost[m] = Some((d, i));
+            }
+        }
+        for (m, best) in outermost.iter().enumerate() {
+            if let Some((_, i)) = best {
+                g.positions[m] = merged[*i];
+            }
         }
 
         // With a coarse start, an edge between two records of a block is split as that
