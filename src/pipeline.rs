@@ -485,7 +485,7 @@ impl Skeletonizer {
             });
             let (graph, positions, radii, sprouts) = match reach? {
                 Some(reach) => pool.install(|| {
-                    with_sprouts(reach, &g.graph, &g.radii, positions, radii, mask, &field, spacing, shift)
+                    with_sprouts(reach, &g.graph, &g.radii, positions, radii, &measure, mask, &field, spacing, shift)
                 })?,
                 None => (std::mem::take(&mut g.graph), positions, radii, vec![]),
             };
@@ -526,7 +526,10 @@ type Sprouted = (Csr, Vec<[f64; 3]>, Vec<f64>, Vec<Grown>);
 /// The output graph (`g`, `positions`, `radii`) with its lost side branches grown back
 /// ([`sprout`]): the new nodes on vessel voxels, their radii by the one rule from the
 /// transform where they sit (`edt`: the old nodes' largest transform values); and the
-/// sprouts.
+/// sprouts. A node that `measured` leaves out (a chunked run's block measures only the
+/// nodes it owns, the others have radius 0) gives its largest transform value to the
+/// test of whether a sprout from its edges is long enough: with 0 every sprout from
+/// the halo's edges passed it, and thick vessels grew sprouts to their walls near cuts.
 #[allow(clippy::too_many_arguments)]
 fn with_sprouts<T: Voxel>(
     reach: Reach<'_>,
@@ -534,13 +537,15 @@ fn with_sprouts<T: Voxel>(
     edt: &[f64],
     positions: Vec<[f64; 3]>,
     mut radii: Vec<f64>,
+    measured: &dyn Fn(usize) -> bool,
     mask: ArrayView3<'_, T>,
     field: &medial::Field,
     spacing: [f64; 3],
     shift: f64,
 ) -> Result<Sprouted> {
     let n = positions.len();
-    let (graph, mut positions, grown) = sprout(reach, g, &positions, &radii)?;
+    let parents: Vec<f64> = (0..n).map(|i| if measured(i) { radii[i] } else { edt[i] }).collect();
+    let (graph, mut positions, grown) = sprout(reach, g, &positions, &parents)?;
     let inside = keep_inside(&positions[n..], mask, spacing);
     positions[n..].copy_from_slice(&inside);
     let edt: Vec<f64> = edt.iter().copied().chain(positions[n..].iter().map(|&q| field.radius_at(q))).collect();

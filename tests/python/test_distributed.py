@@ -229,6 +229,29 @@ def test_thick_vessels_keep_their_ends_near_seams(client: Any) -> None:
             assert np.linalg.norm(ends - np.asarray(e), axis=1).min() < 2.0
 
 
+def test_a_block_grows_no_sprout_from_its_halo_to_a_thick_vessels_wall() -> None:
+    # A block measures the radii of the nodes it owns only; the others read 0. The
+    # test of whether a sprout is long enough (3.5 radii of its parent) took that 0 for
+    # the parent's radius, so every sprout from the halo's edges passed: near the cap of
+    # a radius-9 tube, whose wall lies about its radius from the graph (the lobes a
+    # sprout grows into), block (0, 1, 0) of blocks of 64 grew one to the wall, and the
+    # final pruning then took the tube's real end (12.9 voxels off; the chunked bench's
+    # "Vessel ends near seams"). Such a node now gives the test its largest transform
+    # value. The block's read of that tube, as the bench drew it (halo 27), grows no
+    # sprout, as a single run of the same read grows none.
+    from vesselflow import _core
+
+    lo = np.array([0.0, 37.0, 0.0])
+    a = np.array([26.130161135458593, 140.02631533375018, 63.23641471857223]) - lo
+    b = np.array([97.37595902365088, 15.382201970881201, 134.67522652355953]) - lo
+    mask, _ = cylinder((91, 118, 91), radius=9.0, start=a, end=b)
+    mask = mask.astype(np.uint8)
+    core = [[0, 64], [27, 91], [0, 64]]
+    part = _core.contract_block(_core.Skeletonizer(), mask, [0, 37, 0], core, [160] * 3, [1.0] * 3)
+    assert len(part["sprout_round"]) == 0
+    assert vesselflow.skeletonize(mask).info["sprouts"] == 0
+
+
 def test_anisotropic_spacing(client: Any) -> None:
     mask = _tube((48, 64, 64), 3.0)
     spacing = (2.0, 1.0, 1.0)
