@@ -61,6 +61,7 @@ use crate::graph::{RunInfo, Skeleton};
 use crate::grid::Csr;
 use crate::params::Connectivity;
 use crate::pipeline::{check_skeleton, Skeletonizer};
+use crate::prune::spurs_that_go;
 use crate::resample::{split_long_edges, Chain};
 use crate::vec3::{base_cell, dot, norm, sub};
 use crate::volume::{edt_squared, Voxel};
@@ -630,7 +631,7 @@ impl Skeletonizer {
         leaves.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(a.2.cmp(&b.2)));
         for on_one in leaves.chunk_by(|a, b| a.0 == b.0) {
             let j = on_one[0].0 as usize;
-            let drop = on_one.len().min((degree[j] - folds[j]).saturating_sub(2));
+            let drop = spurs_that_go(degree[j], folds[j], on_one.len());
             for &(_, _, i) in &on_one[..drop] {
                 spur[i] = true;
             }

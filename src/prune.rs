@@ -208,9 +208,18 @@ fn spurs_of(n: usize, edges: &[[usize; 2]], positions: &[[f64; 3]], radii: &[f64
     let mut out = Vec::new();
     for (junction, mut spurs) in inside {
         spurs.sort_by(|a, b| a.0.total_cmp(&b.0));
-        out.extend(spurs.into_iter().take(degree(junction) - 2));
+        let go = spurs_that_go(degree(junction), 0, spurs.len());
+        out.extend(spurs.into_iter().take(go));
     }
     out
+}
+
+/// How many of a junction's `candidates` spurs go (shortest first) when `gone` of its
+/// `degree` neighbours already go: no more than leave it two neighbours, so that pruning
+/// never turns a vessel's last junction into an end or breaks the vessel there. The
+/// single run's pruning and the merge's removal of seam spurs both keep this rule.
+pub(crate) fn spurs_that_go(degree: usize, gone: usize, candidates: usize) -> usize {
+    candidates.min(degree.saturating_sub(gone + 2))
 }
 
 #[cfg(test)]
