@@ -1,5 +1,6 @@
 """The benchmark's extra metrics: vesselflow.metrics.radius_bands, junction_recall,
-mask_fidelity, and the loop target (first Betti number of a mask) they are read with."""
+join_close_junctions, mask_fidelity, and the loop target (first Betti number of a mask)
+they are read with."""
 
 from __future__ import annotations
 
@@ -81,6 +82,52 @@ def test_radius_bands_are_in_voxels_of_the_finest_spacing():
     _, truth = synth.cylinder((20, 24, 24), radius=2.5, spacing=(2.0, 0.5, 0.5))
     # 2.5 physical units at a finest spacing of 0.5 is 5 voxels.
     assert metrics.radius_bands(truth, truth, 1.0)["5-10"]["n"] == truth.n_nodes
+
+
+def two_branch_graph(gap: float) -> VesselGraph:
+    """A straight vessel along axis 0 giving off two branches ``gap`` apart (one up, one
+    down), sampled every unit; the junctions are nodes 10 and 11."""
+    axis = [[float(x), 0.0, 0.0] for x in range(10)]
+    axis += [[10.0, 0.0, 0.0], [10.0 + gap, 0.0, 0.0]]
+    axis += [[11.0 + gap + x, 0.0, 0.0] for x in range(10)]
+    up = [[10.0, float(y), 0.0] for y in range(1, 8)]
+    down = [[10.0 + gap, -float(y), 0.0] for y in range(1, 8)]
+    positions = np.array(axis + up + down)
+    edges = [[i, i + 1] for i in range(21)]
+    edges += [[10, 22]] + [[22 + i, 23 + i] for i in range(6)]
+    edges += [[11, 29]] + [[29 + i, 30 + i] for i in range(6)]
+    return VesselGraph(positions, np.full(len(positions), 1.5), np.array(edges))
+
+
+def test_joining_close_junctions_scores_one_junction_where_two_lie_within_sigma():
+    truth = two_branch_graph(1.5)
+    # The graph: both branches leave from one junction halfway between the true ones.
+    graph = two_branch_graph(0.0)
+    graph = VesselGraph(
+        graph.positions + [0.75, 0.0, 0.0] * (np.arange(graph.n_nodes) == 10)[:, None],
+        graph.radii,
+        graph.edges,
+    )
+    joined = metrics.join_close_junctions(truth, 2.0)
+    assert joined.n_nodes == truth.n_nodes - 1
+    assert joined.n_edges == truth.n_edges - 1
+    assert joined.positions[10].tolist() == [10.75, 0.0, 0.0]
+    assert (joined.degrees() >= 3).sum() == 1
+    assert joined.degrees().max() == 4
+    # Matched one to one, the graph's junction takes one true junction and leaves the
+    # other's three branches unmatched; against the joined truth every branch is found.
+    proper = metrics.netmets(truth, graph, 2.0)
+    assert proper["cfnr"] > 0.3
+    assert metrics.netmets(joined, graph, 2.0)["cfnr"] == 0.0
+    # Farther apart than the tolerance, or not junctions both, nothing is joined.
+    assert metrics.join_close_junctions(truth, 1.5).n_nodes == truth.n_nodes
+    assert metrics.join_close_junctions(two_branch_graph(3.0), 2.0).n_nodes == truth.n_nodes
+    tube = VesselGraph(
+        np.array([[0.0, 0, 0], [0.5, 0, 0], [1.0, 0, 0]]), np.ones(3), np.array([[0, 1], [1, 2]])
+    )
+    assert metrics.join_close_junctions(tube, 2.0).n_nodes == 3
+    with pytest.raises(ValueError, match="distance"):
+        metrics.join_close_junctions(truth, 0.0)
 
 
 def test_junction_recall_counts_truth_junctions_near_graph_nodes():
