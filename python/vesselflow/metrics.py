@@ -981,9 +981,25 @@ def join_close_junctions(graph: VesselGraph, distance: float) -> VesselGraph:
     junctions, each within ``sigma`` of its own, to be matched; a graph with one junction
     there loses the branches of the other. ``netmets(join_close_junctions(truth, sigma),
     graph, sigma)`` scores connectivity at the resolution ``sigma`` stands for. Junctions
-    close in space but not joined by a short edge (crossing vessels) stay apart; other
-    nodes and edges are kept, renumbered in order, and edges the contraction makes twice
-    are kept once.
+    close in space but not joined by a short edge (crossing vessels) stay apart.
+
+    Parameters
+    ----------
+    graph : VesselGraph
+    distance : float
+        Junctions joined by an edge shorter than this (physical units, > 0) become one.
+
+    Returns
+    -------
+    VesselGraph
+        The contracted graph: nodes renumbered in order (a cluster where its first member
+        was), edges the contraction makes twice kept once, ``spacing`` and ``info`` as
+        ``graph``'s.
+
+    Raises
+    ------
+    ValueError, TypeError
+        ``distance`` not a positive finite number.
 
     Examples
     --------
