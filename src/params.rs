@@ -136,8 +136,9 @@ pub struct Params {
     /// radius apart. 0 keeps every junction.
     pub merge_junctions: f64,
     /// Last of all, smooth each node's radius along its branch: the median of the radii
-    /// within this many base cells of it along the branch, junctions excluded
-    /// ([`crate::smooth`]). 0 keeps every node's own measurement.
+    /// within this many base cells of it along the branch, junctions and vessel ends
+    /// excluded, an end taking its branch's ([`crate::smooth`]). 0 keeps every node's own
+    /// measurement.
     pub radius_smoothing: f64,
     /// Anchoring factor of skeleton-like nodes (`Wg = eps_gamma * gamma`).
     pub eps_gamma: f64,

@@ -86,10 +86,11 @@ class Skeletonizer:
     radius_smoothing : float in [0, 100]
         Last of all, each node's radius becomes the median of the radii within this many
         base cells of it along its branch (not in the paper): junctions keep theirs and do
-        not enter the median. It takes out the voxel grid's noise of the per-node
-        measurement; narrowings and bulges shorter than about this length go with it. 0
-        keeps every node's own measurement. ``vesselflow.distributed`` smooths the merged
-        graph.
+        not enter the median; nor do vessel ends (an end sits where the mask rounds the
+        vessel off and reads the cap there), which take their branch's. It takes out the
+        voxel grid's noise of the per-node measurement; narrowings and bulges shorter than
+        about this length go with it. 0 keeps every node's own measurement.
+        ``vesselflow.distributed`` smooths the merged graph.
     eps_gamma : float >= 1
         Anchoring factor of skeletal nodes.
     alpha, beta : float >= 0

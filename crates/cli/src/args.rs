@@ -113,7 +113,8 @@ fn parameter_help(name: &str) -> Option<&'static str> {
         }
         "radius_smoothing" => {
             "Last of all, each node's radius becomes the median of the radii within this many base cells (>= 0) of \
-             it along its branch, junctions excluded (0 keeps every node's own measurement)."
+             it along its branch, junctions and vessel ends excluded, an end taking its branch's (0 keeps every \
+             node's own measurement)."
         }
         "eps_gamma" => "How many times (>= 1) harder than the others nodes already on the centreline are anchored.",
         "alpha" => {
