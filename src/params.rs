@@ -110,8 +110,9 @@ pub struct Params {
     pub skeletal_angle: f64,
     /// Count degree-1 nodes (vessel ends) as skeleton-like too, so they are anchored
     /// `eps_gamma` times harder and kept through decimation, and at output move each
-    /// to one radius inside the mask's end along its vessel (`ends`). The paper's test
-    /// needs degree > 1; without this the flow pulls every free end inward.
+    /// to one radius inside the mask's end along its vessel, or to the centre of a
+    /// rounded cap wider than its section (`ends`). The paper's test needs degree > 1;
+    /// without this the flow pulls every free end inward.
     pub anchor_ends: bool,
     /// At output, grow back the side branches the contraction swallowed into their
     /// parent: lobes of the mask the graph does not reach become new branches from the

@@ -477,8 +477,8 @@ impl Skeletonizer {
                         }
                         // A moved end can stop past a background voxel the line grazed
                         // between two samples: it is kept inside once more.
-                        let ends = extend_ends(&g.graph, &g.positions, &radii, mask, spacing);
-                        let ends = follow_ends(&g.graph, &ends, &radii, mask, spacing);
+                        let (ends, end_radii) = extend_ends(&g.graph, &g.positions, &radii, mask, &field, spacing);
+                        let ends = follow_ends(&g.graph, &ends, &end_radii, mask, spacing);
                         (radii, keep_inside(&ends, mask, spacing))
                     },
                 )

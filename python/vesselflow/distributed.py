@@ -42,9 +42,9 @@ BLOCK_RADII = 6
 """Fewest radii of the thickest vessel a block should span along every axis it cuts; under
 it the run warns. Measured on straight tubes whose ends lie within 4 voxels of a seam, 16
 per set-up (``benches/results/chunked.md``, "Vessel ends near seams"): in blocks of 3.6
-and 5.3 radii, 2 and 1 of 16 tubes had an end more than 2 voxels off (up to 6.9; the
-single run: none; NetMets' CFNR 0.125 and 0.062 against 0); in blocks of 6.4, 7.1 and
-12.8 radii, about as many as the single run's."""
+and 5.3 radii, 1 of 16 tubes had an end more than 2 voxels off (6.9 and 4.4; the single
+run: none; NetMets' CFNR 0.062 against 0); in blocks of 6.4, 7.1 and 12.8 radii none, as
+in the single run."""
 
 Block = tuple[int, int, int]
 Slices = tuple[slice, slice, slice]
