@@ -54,11 +54,11 @@
 use crate::grid::Csr;
 use crate::inside::{on_mask as inside, voxel_of};
 use crate::medial::{plane_basis, Field};
-use crate::vec3::{base_cell, dot, norm, sub, unit};
+use crate::vec3::{base_cell, dot, norm, projection, sub, unit};
 use crate::volume::Voxel;
 use ndarray::ArrayView3;
 use rayon::prelude::*;
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 
 /// Steps along the line per base cell.
 const STEPS_PER_CELL: f64 = 4.0;
@@ -135,34 +135,29 @@ fn cap_depth(field: &Field, exit: [f64; 3], u: [f64; 3], h: f64, limit: f64, c: 
 }
 
 /// The edges met walking the graph from node `i` up to a path length of `reach` (at
-/// most 256 nodes), but the edges at `i`.
+/// most 256 nodes), but the edges at `i`; sorted.
 fn nearby_edges(g: &Csr, positions: &[[f64; 3]], i: usize, reach: f64) -> Vec<(usize, usize)> {
-    let mut seen = vec![(i, 0.0)];
+    let mut queue = vec![(i, 0.0)];
+    let mut seen = FxHashSet::from_iter([i]);
     let mut out = vec![];
     let mut k = 0;
-    while k < seen.len() && seen.len() < 256 {
-        let (a, d) = seen[k];
+    while k < queue.len() && queue.len() < 256 {
+        let (a, d) = queue[k];
         k += 1;
         for &b in g.neighbours(a) {
             let b = b as usize;
-            let db = d + dist(&positions[a], &positions[b]);
-            if a != i && b != i && !out.contains(&(a.min(b), a.max(b))) {
+            if a != i && b != i {
                 out.push((a.min(b), a.max(b)));
             }
-            if db <= reach && !seen.iter().any(|&(x, _)| x == b) {
-                seen.push((b, db));
+            let db = d + dist(&positions[a], &positions[b]);
+            if db <= reach && seen.insert(b) {
+                queue.push((b, db));
             }
         }
     }
+    out.sort_unstable();
+    out.dedup();
     out
-}
-
-/// The distance from `x` to the segment `a`–`b`.
-fn segment_distance(x: [f64; 3], a: [f64; 3], b: [f64; 3]) -> f64 {
-    let ab = sub(b, a);
-    let l2 = dot(ab, ab);
-    let s = if l2 > 0.0 { (dot(sub(x, a), ab) / l2).clamp(0.0, 1.0) } else { 0.0 };
-    norm(sub(x, [a[0] + s * ab[0], a[1] + s * ab[1], a[2] + s * ab[2]]))
 }
 
 /// Whether the mask holds at least half of the ring of radius `rho` about `centre` in
@@ -213,7 +208,7 @@ pub fn extend_ends<T: Voxel>(
             let x = at(t);
             near.iter().any(|&(a, b)| {
                 let reach = t.min(radii[a].max(radii[b])) - 0.5 * c;
-                reach > 0.0 && segment_distance(x, positions[a], positions[b]) < reach
+                reach > 0.0 && projection(x, positions[a], positions[b]).1 < reach
             })
         };
         // The last inside sample; the boundary is half a step beyond it.

@@ -1015,7 +1015,7 @@ def join_close_junctions(graph: VesselGraph, distance: float) -> VesselGraph:
     distance = _check_positive(distance, "distance")
     n = graph.n_nodes
     edges = graph.edges
-    degree = np.bincount(edges.ravel(), minlength=n)
+    degree = graph.degrees()
     length = np.linalg.norm(graph.positions[edges[:, 0]] - graph.positions[edges[:, 1]], axis=1)
     short = (degree[edges[:, 0]] >= 3) & (degree[edges[:, 1]] >= 3) & (length < distance)
     pairs = coo_matrix((np.ones(int(short.sum())), (edges[short, 0], edges[short, 1])), (n, n))
